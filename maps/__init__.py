@@ -1,0 +1,1 @@
+"""The sparse two-level TSDF map: container, building, file format, import and export."""

@@ -1,0 +1,1 @@
+"""Procedural worlds, trajectories and sensors for `mcl3d simulate`."""
