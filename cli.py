@@ -8,7 +8,6 @@ exit 2; Ctrl-C exits 130 after the running command has kept what it finished.
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 from typing import Annotated
 
 import typer
@@ -16,7 +15,9 @@ import typer
 from mcl3d import __version__
 from mcl3d.errors import Mcl3dError, RunInterrupted
 
-BACKEND_HELP = "Compute backend: auto (cuda, then a hardware Vulkan GPU, then cpu), cuda, vulkan or cpu."
+BACKEND_HELP = (
+    "Compute backend: auto (cuda, then a hardware Vulkan GPU, then cpu), cuda, vulkan or cpu."
+)
 
 
 class _App(typer.Typer):
@@ -41,7 +42,8 @@ def _error(message: str) -> None:
 
 app = _App(
     name="mcl3d",
-    help="6-DoF Monte Carlo localization and Monte Carlo SLAM for 3D LiDAR (Taichi: cuda, vulkan, cpu).",
+    help="6-DoF Monte Carlo localization and Monte Carlo SLAM for 3D LiDAR "
+    "(Taichi kernels on cuda, vulkan or cpu).",
     no_args_is_help=True,
     add_completion=False,
     rich_markup_mode="rich",

@@ -6,10 +6,10 @@ command-line flags; the effective config is saved beside the run's outputs.
 
 from __future__ import annotations
 
-import tomllib
 from pathlib import Path
 from typing import Any, TypeVar
 
+import tomllib
 import yaml
 from pydantic import BaseModel, ConfigDict, ValidationError
 
@@ -64,7 +64,8 @@ def _read_file(path: Path) -> dict[str, Any]:
     try:
         data = tomllib.loads(text) if path.suffix == ".toml" else yaml.safe_load(text)
     except (tomllib.TOMLDecodeError, yaml.YAMLError) as exc:
-        raise ConfigError(f"config file {path} is not valid {path.suffix[1:] or 'YAML'}: {exc}")
+        kind = "TOML" if path.suffix == ".toml" else "YAML"
+        raise ConfigError(f"config file {path} is not valid {kind}: {exc}") from None
     if data is None:
         return {}
     if not isinstance(data, dict):

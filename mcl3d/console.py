@@ -46,7 +46,8 @@ def make_progress() -> Progress:
     )
 
 
-def track(items: Iterable[T], total: int | None, description: str, unit: str = "frames") -> Iterator[T]:
+def track(items: Iterable[T], total: int | None, description: str,
+          unit: str = "frames") -> Iterator[T]:
     """Iterate with a progress bar showing `unit`/s and ETA; no output outside a terminal."""
     with make_progress() as progress:
         task = progress.add_task(description, total=total, status="", rate="")

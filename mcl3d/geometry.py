@@ -61,13 +61,13 @@ def rot_to_quat(R: np.ndarray) -> np.ndarray:
             q[sel] = np.stack([(s[:, 2, 1] - s[:, 1, 2]) / r, (s[:, 0, 2] - s[:, 2, 0]) / r,
                                (s[:, 1, 0] - s[:, 0, 1]) / r, r / 4], axis=1)
         else:
-            i, j, l = case, (case + 1) % 3, (case + 2) % 3
-            r = np.sqrt(1.0 + s[:, i, i] - s[:, j, j] - s[:, l, l]) * 2
+            i, j, k3 = case, (case + 1) % 3, (case + 2) % 3
+            r = np.sqrt(1.0 + s[:, i, i] - s[:, j, j] - s[:, k3, k3]) * 2
             qq = np.empty((s.shape[0], 4))
             qq[:, i] = r / 4
             qq[:, j] = (s[:, j, i] + s[:, i, j]) / r
-            qq[:, l] = (s[:, l, i] + s[:, i, l]) / r
-            qq[:, 3] = (s[:, l, j] - s[:, j, l]) / r
+            qq[:, k3] = (s[:, k3, i] + s[:, i, k3]) / r
+            qq[:, 3] = (s[:, k3, j] - s[:, j, k3]) / r
             q[sel] = qq
     q = np.where(q[:, 3:4] < 0, -q, q)
     q /= np.linalg.norm(q, axis=1, keepdims=True)
@@ -160,9 +160,11 @@ def se3_log(T: np.ndarray) -> np.ndarray:
 
 
 def rpy_to_rot(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    """Rotation from fixed-axis roll, pitch, yaw (radians), R = Rz(yaw) Ry(pitch) Rx(roll) as in ROS."""
-    return so3_exp(np.array([0.0, 0.0, yaw])) @ so3_exp(np.array([0.0, pitch, 0.0])) @ so3_exp(
-        np.array([roll, 0.0, 0.0]))
+    """Rotation from fixed-axis roll, pitch, yaw (radians): Rz(yaw) Ry(pitch) Rx(roll), as ROS."""
+    Rz = so3_exp(np.array([0.0, 0.0, yaw]))
+    Ry = so3_exp(np.array([0.0, pitch, 0.0]))
+    Rx = so3_exp(np.array([roll, 0.0, 0.0]))
+    return Rz @ Ry @ Rx
 
 
 def rot_to_rpy(R: np.ndarray) -> np.ndarray:
@@ -186,7 +188,7 @@ def interpolate_se3(T_a: np.ndarray, T_b: np.ndarray, alpha: np.ndarray | float)
 
 
 def random_rotations(rng: np.random.Generator, n: int) -> np.ndarray:
-    """n rotations uniform on SO(3) (normalized Gaussian quaternions), never uniform Euler angles."""
+    """n rotations uniform on SO(3) (normalized Gaussian quaternions), not uniform Euler angles."""
     q = rng.standard_normal((n, 4))
     return quat_to_rot(q / np.linalg.norm(q, axis=1, keepdims=True))
 
