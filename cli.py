@@ -8,6 +8,7 @@ exit 2; Ctrl-C exits 130 after the running command has kept what it finished.
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 from typing import Annotated
 
 import typer
@@ -111,3 +112,122 @@ def backends(backend: BackendOption = None) -> None:
         ("requested", info.requested),
         ("running", f"{info.backend} on {info.device}"),
     ]))
+
+
+def _one_of(allowed: tuple[str, ...]):
+    """A Typer callback that accepts only `allowed` values (usage error, exit 2, otherwise)."""
+
+    def check(value: str) -> str:
+        if value not in allowed:
+            raise typer.BadParameter(f"{value!r} is not one of {', '.join(allowed)}")
+        return value
+
+    return check
+
+
+@app.command("eval")
+def eval_trajectory(
+    est: Annotated[Path, typer.Argument(
+        help="Estimated trajectory: TUM (t x y z qx qy qz qw) or KITTI (12 numbers), by content.",
+        show_default=False)],
+    ref: Annotated[Path, typer.Option(
+        "--ref", help="Reference (ground-truth) trajectory, TUM or KITTI.", show_default=False)],
+    align: Annotated[str, typer.Option(
+        "--align", callback=_one_of(("se3", "sim3", "origin", "none")),
+        help="Alignment of the estimate before the errors: se3 or sim3 (Umeyama over all "
+             "associated positions; sim3 also fits the scale), origin (first poses coincide) "
+             "or none (same as evo without -a).")] = "none",
+    t_max_diff: Annotated[float, typer.Option(
+        "--t-max-diff", min=0.0,
+        help="Largest stamp difference in seconds for pairing poses (as evo's --t_max_diff).")
+    ] = 0.01,
+    rpe_delta: Annotated[float, typer.Option(
+        "--rpe-delta", help="RPE pose-pair spacing, in --rpe-unit.")] = 1.0,
+    rpe_unit: Annotated[str, typer.Option(
+        "--rpe-unit", callback=_one_of(("m", "frames")),
+        help="RPE spacing unit: m (travelled distance) or frames.")] = "m",
+    rpe_all_pairs: Annotated[bool, typer.Option(
+        "--rpe-all-pairs", help="Use every pose as an RPE pair start, not consecutive pairs.")
+    ] = False,
+    plot: Annotated[Path | None, typer.Option(
+        "--plot", help="Write a figure (.png, .pdf or .svg): top view of both trajectories "
+                       "and the ATE over time.", show_default=False)] = None,
+    json_path: Annotated[Path | None, typer.Option(
+        "--json", help="Write the numbers as JSON.", show_default=False)] = None,
+    force: Annotated[bool, typer.Option("--force", help="Overwrite existing outputs.")] = False,
+) -> None:
+    """Accuracy of a trajectory against a reference: ATE and RPE, with evo's numbers."""
+    import json
+
+    from mcl3d.console import console
+    from mcl3d.evaluation import evaluate, read_pair
+    from mcl3d.outputs import check_writable, write_text_atomic
+    from mcl3d.plots import plot_evaluation, plot_format
+
+    for path in (plot, json_path):
+        if path is not None:
+            check_writable(path, force)
+    if plot is not None:
+        plot_format(plot)
+    reference, estimate = read_pair(ref, est)
+    result = evaluate(reference, estimate, alignment=align, max_diff_s=t_max_diff,
+                      rpe_delta=rpe_delta, rpe_unit=rpe_unit, all_pairs=rpe_all_pairs,
+                      ref_name=str(ref), est_name=str(est))
+    if plot is not None:
+        plot_evaluation(plot, result, reference, estimate, ref_label=ref.name,
+                        est_label=est.name)
+    if json_path is not None:
+        numbers = {"reference": str(ref), "estimate": str(est), **result.as_dict()}
+        write_text_atomic(json_path, json.dumps(numbers, indent=2) + "\n")
+    for table in _eval_tables(result, ref, est, plot, json_path):
+        console.print(table)
+
+
+def _eval_tables(result, ref: Path, est: Path, plot: Path | None, json_path: Path | None):
+    """The run summary and the error statistics of `mcl3d eval` as Rich tables."""
+    from rich.table import Table
+
+    from mcl3d.console import summary_table
+
+    how = result.alignment
+    aligned = {"none": "none", "origin": "origin (first poses coincide)",
+               "se3": "se3 (Umeyama)", "sim3": f"sim3 (Umeyama), scale {how.scale:.6f}"}
+    rows = [("reference", f"{ref} ({result.num_ref} poses)"),
+            ("estimate", f"{est} ({result.num_est} poses)"),
+            ("associated", f"{len(result.association)} poses within "
+                           f"{result.association.max_diff_s:g} s"),
+            ("alignment", aligned[how.method]),
+            ("RPE pairs", f"{result.rpe.pairs.shape[0]} at {result.rpe.delta:g} {result.rpe.unit}"
+                          f"{' (all pairs)' if result.rpe.all_pairs else ''}")]
+    rows += [(name, str(path)) for name, path in (("plot", plot), ("json", json_path)) if path]
+    stats = Table(title="Trajectory error", title_justify="left")
+    for column in ("metric", "unit", "rmse", "mean", "median", "std", "min", "max"):
+        stats.add_column(column, justify="left" if column in ("metric", "unit") else "right")
+    for name, unit, s in (("ATE translation", "m", result.ate.translation_m),
+                          ("ATE rotation", "deg", result.ate.rotation_deg),
+                          ("RPE translation", "m", result.rpe.translation_m),
+                          ("RPE rotation", "deg", result.rpe.rotation_deg)):
+        stats.add_row(name, unit, *(f"{v:.4f}" for v in
+                                    (s.rmse, s.mean, s.median, s.std, s.min, s.max)))
+    return summary_table("Evaluation", rows), stats
+
+
+@app.command()
+def info(
+    log: Annotated[Path, typer.Argument(help="MCAP file, ROS 1 .bag file or ROS 2 bag folder.",
+                                        show_default=False)],
+    points_topic: Annotated[str | None, typer.Option(help="PointCloud2 topic to use.")] = None,
+    imu_topic: Annotated[str | None, typer.Option(help="Imu topic to use.")] = None,
+    odom_topic: Annotated[str | None, typer.Option(help="Odometry topic to use.")] = None,
+    gt_topic: Annotated[str | None, typer.Option(help="Ground-truth pose topic to use.")] = None,
+    scans: Annotated[int, typer.Option(min=1, help="Scans decoded per cloud topic for the "
+                                       "point statistics.")] = 3,
+) -> None:
+    """Describe a log like `ros2 bag info`: topics, types, counts, rates, frames, cloud layout."""
+    from mcl3d.console import console
+    from mcl3d.logs.info import log_info, render
+
+    result = log_info(log, max_scans=scans, points_topic=points_topic, imu_topic=imu_topic,
+                      odom_topic=odom_topic, gt_topic=gt_topic)
+    for table in render(result):
+        console.print(table)
