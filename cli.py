@@ -212,14 +212,26 @@ def _eval_tables(result, ref: Path, est: Path, plot: Path | None, json_path: Pat
     return summary_table("Evaluation", rows), stats
 
 
+# Topic overrides shared by every command that reads a log (CONVENTIONS §3).
+PointsTopicOption = Annotated[str | None, typer.Option(
+    "--points-topic", help="PointCloud2 topic (default: the only one in the log).")]
+ImuTopicOption = Annotated[str | None, typer.Option(
+    "--imu-topic", help="Imu topic (default: the only one in the log).")]
+OdomTopicOption = Annotated[str | None, typer.Option(
+    "--odom-topic", help="Odometry topic (default: the only one not named like ground truth).")]
+GtTopicOption = Annotated[str | None, typer.Option(
+    "--gt-topic", help="Ground-truth pose topic (default: the one named ground_truth, "
+                       "groundtruth or gt).")]
+
+
 @app.command()
 def info(
     log: Annotated[Path, typer.Argument(help="MCAP file, ROS 1 .bag file or ROS 2 bag folder.",
-                                        show_default=False)],
-    points_topic: Annotated[str | None, typer.Option(help="PointCloud2 topic to use.")] = None,
-    imu_topic: Annotated[str | None, typer.Option(help="Imu topic to use.")] = None,
-    odom_topic: Annotated[str | None, typer.Option(help="Odometry topic to use.")] = None,
-    gt_topic: Annotated[str | None, typer.Option(help="Ground-truth pose topic to use.")] = None,
+                                        metavar="LOG", show_default=False)],
+    points_topic: PointsTopicOption = None,
+    imu_topic: ImuTopicOption = None,
+    odom_topic: OdomTopicOption = None,
+    gt_topic: GtTopicOption = None,
     scans: Annotated[int, typer.Option(min=1, help="Scans decoded per cloud topic for the "
                                        "point statistics.")] = 3,
 ) -> None:
@@ -231,3 +243,44 @@ def info(
                       odom_topic=odom_topic, gt_topic=gt_topic)
     for table in render(result):
         console.print(table)
+
+
+@app.command()
+def simulate(
+    world: Annotated[str, typer.Argument(
+        help="World: office (rooms + ramps), building (floors + elevator), forest (tree rows) "
+             "or arena (symmetric hall).", show_default=False)],
+    output: Annotated[Path, typer.Option(
+        "-o", "--output", help="The ROS 2 MCAP log to write; NAME_gt.tum (ground truth) and "
+                               "NAME_config.yaml (effective config) go beside it.",
+        show_default=False)],
+    sensor: Annotated[str, typer.Option(
+        "--sensor", help="LiDAR: vlp16, os0-64, os1-64 or mid360.")] = "vlp16",
+    trajectory: Annotated[str, typer.Option(
+        "--trajectory", help="ground, loop, handheld, drone (forest, arena), elevator "
+                             "(building) or kidnap.")] = "ground",
+    duration: Annotated[float, typer.Option("--duration", help="Seconds to simulate.")] = 10.0,
+    seed: Annotated[int, typer.Option("--seed", help="Seed of the world, the path and every "
+                                      "noise: same seed, same bytes.")] = 0,
+    config: Annotated[Path | None, typer.Option(
+        "--config", help="YAML/TOML with sections lidar, imu, odometry, map (see the saved "
+                         "_config.yaml for every key).", show_default=False)] = None,
+    export_mesh: Annotated[Path | None, typer.Option(
+        "--export-mesh", help="Also write the world's triangle mesh (.ply).",
+        show_default=False)] = None,
+    export_map: Annotated[Path | None, typer.Option(
+        "--export-map", help="Also write a prior point-cloud map sampled on the surfaces (.ply).",
+        show_default=False)] = None,
+    force: Annotated[bool, typer.Option("--force", help="Overwrite existing outputs.")] = False,
+) -> None:
+    """Simulate a LiDAR, IMU, odometry and ground truth in a world, as a ROS 2 MCAP log."""
+    from mcl3d.console import console
+    from mcl3d.sim.pipeline import SimulateRequest, run, summary_rows
+
+    result = run(SimulateRequest(world=world, sensor=sensor, trajectory=trajectory,
+                                 duration_s=duration, seed=seed, output=output,
+                                 config_path=config, export_mesh=export_mesh,
+                                 export_map=export_map, force=force))
+    from mcl3d.console import summary_table
+
+    console.print(summary_table("Simulation", summary_rows(result)))
