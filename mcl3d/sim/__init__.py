@@ -1,1 +1,2 @@
-"""Procedural worlds, trajectories and sensors for `mcl3d simulate`."""
+"""The simulator behind `mcl3d simulate`: worlds (mesh, worlds), trajectories (spline,
+trajectories), sensors (lidars, scan, raycast, imu, odometry) and the pipeline writing logs."""

@@ -1,0 +1,360 @@
+"""Smooth sensor-rig trajectories through a world, with analytic velocity and acceleration.
+
+The rig's `base_link` follows a C2 quintic Hermite curve in (x, y, z, roll, pitch, yaw)
+(`spline.QuinticHermite`), so position, velocity, acceleration, body angular velocity and
+angular acceleration are all analytic and the simulated IMU is consistent with the poses.
+
+Two effects are kept apart from the smooth motion M(t):
+- a kidnap: ground truth is `T_kidnap @ M(t)` after the kidnap time, while the IMU and the
+  odometry keep following M(t) (they never see the teleport);
+- an elevator ride: the cab carries the rig vertically; the IMU feels it (it is part of M),
+  wheel odometry does not (the carrier's motion is removed from what odometry sees).
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import gaussian_filter1d
+
+from mcl3d.errors import ConfigError
+from mcl3d.geometry import se3, se3_inverse
+from mcl3d.sim.spline import QuinticHermite, catmull_rom_rates, knot_accelerations
+from mcl3d.sim.worlds import World
+
+TRAJECTORIES = ("ground", "loop", "handheld", "drone", "elevator", "kidnap")
+VALID = {
+    "office": ("ground", "loop", "handheld", "kidnap"),
+    "building": ("ground", "loop", "handheld", "elevator", "kidnap"),
+    "forest": ("ground", "loop", "handheld", "drone", "kidnap"),
+    "arena": ("ground", "loop", "handheld", "drone", "kidnap"),
+}
+GRAVITY_MPS2 = 9.80665
+REST_S = 1.5  # the rig stands still this long at the start and end of each path
+
+
+@dataclass
+class Kinematics:
+    """Smooth rig motion at N times: base_link pose, world-frame velocity and acceleration,
+    body-frame angular velocity and angular acceleration."""
+
+    R_map_base: np.ndarray  # (N, 3, 3)
+    p_map_base: np.ndarray  # (N, 3) m
+    v_map: np.ndarray  # (N, 3) m/s
+    a_map: np.ndarray  # (N, 3) m/s^2
+    w_base: np.ndarray  # (N, 3) rad/s
+    dw_base: np.ndarray  # (N, 3) rad/s^2
+
+
+def _euler_rotations(rpy: np.ndarray) -> np.ndarray:
+    """R = Rz(yaw) Ry(pitch) Rx(roll), batched."""
+    cr, sr = np.cos(rpy[:, 0]), np.sin(rpy[:, 0])
+    cp, sp = np.cos(rpy[:, 1]), np.sin(rpy[:, 1])
+    cy, sy = np.cos(rpy[:, 2]), np.sin(rpy[:, 2])
+    R = np.empty((len(rpy), 3, 3))
+    R[:, 0, 0], R[:, 0, 1], R[:, 0, 2] = cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr
+    R[:, 1, 0], R[:, 1, 1], R[:, 1, 2] = sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr
+    R[:, 2, 0], R[:, 2, 1], R[:, 2, 2] = -sp, cp * sr, cp * cr
+    return R
+
+
+def _body_rates(rpy, d_rpy, dd_rpy) -> tuple[np.ndarray, np.ndarray]:
+    """Body angular velocity and its derivative from ZYX Euler angles and their derivatives."""
+    r, p = rpy[:, 0], rpy[:, 1]
+    dr, dp, dy = d_rpy.T
+    ddr, ddp, ddy = dd_rpy.T
+    sr, cr, sp, cp = np.sin(r), np.cos(r), np.sin(p), np.cos(p)
+    w = np.stack([dr - dy * sp, dp * cr + dy * sr * cp, -dp * sr + dy * cr * cp], axis=1)
+    dw = np.stack([
+        ddr - ddy * sp - dy * dp * cp,
+        ddp * cr - dp * dr * sr + ddy * sr * cp + dy * dr * cr * cp - dy * dp * sr * sp,
+        -ddp * sr - dp * dr * cr + ddy * cr * cp - dy * dr * sr * cp - dy * dp * cr * sp,
+    ], axis=1)
+    return w, dw
+
+
+class SimTrajectory:
+    """The rig's motion over [0, duration_s]: smooth M(t), optional kidnap and elevator."""
+
+    def __init__(self, kind: str, world: World, t_knots: np.ndarray, values: np.ndarray,
+                 stops: np.ndarray, duration_s: float, kidnap_t_s: float | None = None,
+                 carrier: QuinticHermite | None = None,
+                 door_closed_s: tuple[float, float] | None = None,
+                 cab_z0_m: float | None = None) -> None:
+        self.kind = kind
+        self.world = world
+        self.duration_s = duration_s
+        values = values.copy()
+        values[:, 5] = np.unwrap(values[:, 5])
+        rates = catmull_rom_rates(t_knots, values, stops)
+        self.motion = QuinticHermite(t_knots, values, rates,
+                                     knot_accelerations(t_knots, rates, stops))
+        self.kidnap_t_s = kidnap_t_s
+        self.carrier = carrier
+        self.door_closed_s = door_closed_s
+        elevator = world.elevator
+        self.cab_z0_m = cab_z0_m if cab_z0_m is not None else (
+            elevator.floor_z_m[0] if elevator is not None else 0.0)
+
+    def kinematics(self, t_s: np.ndarray) -> Kinematics:
+        """The smooth motion M(t) (what the IMU feels; no kidnap jump)."""
+        t = np.atleast_1d(np.asarray(t_s, dtype=np.float64))
+        x, dx, ddx = (self.motion(t, k) for k in range(3))
+        w, dw = _body_rates(x[:, 3:], dx[:, 3:], ddx[:, 3:])
+        return Kinematics(_euler_rotations(x[:, 3:]), x[:, :3], dx[:, :3], ddx[:, :3], w, dw)
+
+    def _smooth_poses(self, t: np.ndarray) -> np.ndarray:
+        x = self.motion(t)
+        return se3(_euler_rotations(x[:, 3:]), x[:, :3])
+
+    def T_map_base(self, t_s: np.ndarray) -> np.ndarray:
+        """Ground-truth base_link poses (N, 4, 4), including the kidnap jump."""
+        t = np.atleast_1d(np.asarray(t_s, dtype=np.float64))
+        T = self._smooth_poses(t)
+        if self.kidnap_t_s is not None:
+            jumped = t >= self.kidnap_t_s
+            T[jumped] = self.world.T_kidnap @ T[jumped]
+        return T
+
+    def T_odom_base(self, t_s: np.ndarray) -> np.ndarray:
+        """What perfect wheel odometry measures: M(t) without the carrier (cab) motion,
+        relative to the start pose."""
+        t = np.atleast_1d(np.asarray(t_s, dtype=np.float64))
+        T = self._smooth_poses(t)
+        T0 = self._smooth_poses(np.array([0.0]))[0]
+        if self.carrier is not None:
+            T[:, 2, 3] -= self.carrier(t)[:, 0]
+        return se3_inverse(T0) @ T
+
+    def cab_z_m(self, t_s: np.ndarray) -> np.ndarray:
+        t = np.atleast_1d(np.asarray(t_s, dtype=np.float64))
+        if self.carrier is None:
+            return np.full(len(t), self.cab_z0_m)
+        return self.cab_z0_m + self.carrier(t)[:, 0]
+
+    def door_closed(self, t_s: np.ndarray) -> np.ndarray:
+        t = np.atleast_1d(np.asarray(t_s, dtype=np.float64))
+        if self.door_closed_s is None:
+            return np.zeros(len(t), dtype=bool)
+        return (t >= self.door_closed_s[0]) & (t <= self.door_closed_s[1])
+
+    def path_length_m(self, step_s: float = 0.05) -> float:
+        t = np.arange(0.0, self.duration_s + step_s, step_s)
+        p = self.T_map_base(t)[:, :3, 3]
+        d = np.linalg.norm(np.diff(p, axis=0), axis=1)
+        if self.kidnap_t_s is not None:  # the teleport is not travelled
+            d[np.searchsorted(t, self.kidnap_t_s) - 1] = 0.0
+        return float(d.sum())
+
+
+# ---------------------------------------------------------------------------------- paths
+@dataclass
+class _Style:
+    speed_mps: float
+    yaw_rate_max: float
+    accel_mps2: float
+    knot_dt_s: float
+
+
+STYLES = {
+    "ground": _Style(0.8, 0.6, 0.5, 0.1),
+    "handheld": _Style(1.1, 0.9, 0.8, 0.04),
+    "drone": _Style(1.5, 0.8, 1.0, 0.1),
+}
+
+
+def _densify(points: np.ndarray, max_step_m: float) -> np.ndarray:
+    """Split polyline segments longer than `max_step_m` (bounds how far corners get cut)."""
+    out = [points[:1]]
+    for a, b in itertools.pairwise(points):
+        n = max(int(np.ceil(np.linalg.norm(b - a) / max_step_m)), 1)
+        out.append(a + (b - a) * (np.arange(1, n + 1) / n)[:, None])
+    return np.vstack(out)
+
+
+def _chaikin(points: np.ndarray, iterations: int = 4) -> np.ndarray:
+    """Corner cutting of an open polyline (endpoints kept): converges to a quadratic B-spline."""
+    for _ in range(iterations):
+        a, b = points[:-1], points[1:]
+        mids = np.empty((2 * len(a), points.shape[1]))
+        mids[0::2] = 0.75 * a + 0.25 * b
+        mids[1::2] = 0.25 * a + 0.75 * b
+        points = np.vstack([points[:1], mids, points[-1:]])
+    return points
+
+
+def _resample(points: np.ndarray, step_m: float) -> tuple[np.ndarray, np.ndarray]:
+    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    keep = np.concatenate([[True], seg > 1e-9])
+    points = points[keep]
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
+    s_new = np.arange(0.0, s[-1], step_m)
+    if s_new[-1] < s[-1]:
+        s_new = np.append(s_new, s[-1])
+    columns = [np.interp(s_new, s, points[:, i]) for i in range(points.shape[1])]
+    return np.column_stack(columns), s_new
+
+
+def _timed_path(waypoints: np.ndarray, style: _Style, t0: float, min_end_s: float | None,
+                closed: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Knot times, xy and heading along the smoothed route, speed limited by turn rate and
+    acceleration, starting and ending at rest. A closed route is repeated until the motion
+    lasts past `min_end_s`."""
+    loop_m = float(np.linalg.norm(np.diff(np.vstack([waypoints, waypoints[:1]]), axis=0),
+                                  axis=1).sum())
+    repeats = 1 if min_end_s is None else max(1, int((min_end_s - t0) * style.speed_mps / loop_m))
+    while True:
+        route = np.vstack([waypoints] * repeats + [waypoints[:1]]) if closed else waypoints
+        curve, s = _resample(_chaikin(_densify(route, 1.0)), 0.05)
+        d = np.gradient(curve, s, axis=0)
+        heading = np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
+        kernel = np.ones(9) / 9
+        curvature = np.abs(np.convolve(np.gradient(heading, s), kernel, mode="same"))
+        v = np.minimum(style.speed_mps, style.yaw_rate_max / np.maximum(curvature, 1e-6))
+        v[0] = v[-1] = 0.0
+        ds = np.diff(s)
+        for i in range(1, len(v)):  # acceleration limit forwards, then braking backwards
+            v[i] = min(v[i], np.sqrt(v[i - 1] ** 2 + 2 * style.accel_mps2 * ds[i - 1]))
+        for i in range(len(v) - 2, -1, -1):
+            v[i] = min(v[i], np.sqrt(v[i + 1] ** 2 + 2 * style.accel_mps2 * ds[i]))
+        t = t0 + np.concatenate([[0.0], np.cumsum(2 * ds / np.maximum(v[1:] + v[:-1], 1e-6))])
+        if min_end_s is None or t[-1] >= min_end_s or not closed:
+            break
+        repeats += 1
+    # Knots at even times, with the rig at rest for REST_S before and after the path; a
+    # low-pass over ~0.25 s then bounds the angular acceleration where turns begin and end.
+    dt = style.knot_dt_s
+    pad = int(np.ceil(REST_S / dt))
+    n = max(int(np.ceil((t[-1] - t0) / dt)), 1)
+    t_path = np.linspace(t0, t[-1], n + 1)
+    xy = np.column_stack([np.interp(t_path, t, curve[:, i]) for i in range(2)])
+    heading = np.interp(t_path, t, heading)
+    xy = np.vstack([np.repeat(xy[:1], pad, axis=0), xy, np.repeat(xy[-1:], pad, axis=0)])
+    heading = np.concatenate([np.full(pad, heading[0]), heading, np.full(pad, heading[-1])])
+    t_k = t0 + np.concatenate([np.arange(pad) * dt, pad * dt + (t_path - t0),
+                               pad * dt + (t_path[-1] - t0) + (np.arange(pad) + 1) * dt])
+    sigma = 0.25 / dt
+    ends = xy[[0, -1]], heading[[0, -1]]
+    xy = gaussian_filter1d(xy, sigma, axis=0, mode="nearest")
+    heading = gaussian_filter1d(heading, sigma, mode="nearest")
+    xy[[0, -1]], heading[[0, -1]] = ends
+    return t_k, xy, heading
+
+
+def _ground_height(world: World, xy: np.ndarray, z_ref: float) -> np.ndarray:
+    """Height of the walkable surface below each xy point (ray cast down from z_ref + 2 m)."""
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(world.ground.vertices.astype(np.float32)),
+                        o3d.core.Tensor(world.ground.triangles.astype(np.uint32)))
+    rays = np.zeros((len(xy), 6), dtype=np.float32)
+    rays[:, :2], rays[:, 2], rays[:, 5] = xy, z_ref + 2.0, -1.0
+    t_hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+    return np.where(np.isfinite(t_hit), z_ref + 2.0 - t_hit, z_ref)
+
+
+def _pose_values(world: World, kind: str, t: np.ndarray, xy: np.ndarray, heading: np.ndarray,
+                 z_ref: float, flat: bool, rng: np.random.Generator) -> np.ndarray:
+    """(K, 6) knot values x y z roll pitch yaw of base_link for a rig `kind`."""
+    n = len(t)
+    values = np.zeros((n, 6))
+    values[:, :2], values[:, 5] = xy, heading
+    ground = (lambda p: np.full(len(p), z_ref)) if flat else (
+        lambda p: _ground_height(world, p, z_ref))
+    fwd = np.column_stack([np.cos(heading), np.sin(heading)])
+    left = np.column_stack([-fwd[:, 1], fwd[:, 0]])
+    if kind == "ground":  # wheels on the ground: 0.6 m wheelbase, 0.5 m track
+        zf, zb = ground(xy + 0.3 * fwd), ground(xy - 0.3 * fwd)
+        zl, zr = ground(xy + 0.25 * left), ground(xy - 0.25 * left)
+        values[:, 2] = 0.5 * (zf + zb)
+        values[:, 4] = -np.arctan2(zf - zb, 0.6)
+        values[:, 3] = np.arctan2(zl - zr, 0.5)
+        return values
+    phase = rng.uniform(0, 2 * np.pi, 4)
+    # oscillations fade in and out over 2 s so the rig starts and ends at rest
+    env = np.clip(np.minimum(t - t[0], t[-1] - t) / 2.0, 0.0, 1.0)
+    env = env * env * (3 - 2 * env)
+    if kind == "handheld":  # walking: bob at step frequency, sway at stride frequency
+        values[:, 2] = ground(xy) + 1.25 + env * 0.025 * np.sin(2 * np.pi * 1.8 * t + phase[0])
+        values[:, 3] = env * 0.04 * np.sin(2 * np.pi * 0.9 * t + phase[1])
+        values[:, 4] = -0.03 + env * 0.04 * np.sin(2 * np.pi * 0.9 * t + phase[2])
+        values[:, 5] = heading + env * 0.2 * np.sin(2 * np.pi * 0.15 * t + phase[3])
+        return values
+    # drone: altitude changes, tilt follows horizontal acceleration, slow yaw oscillation
+    ceiling = 2.0 if world.name == "forest" else 3.0
+    values[:, 2] = ground(xy) + ceiling + env * 0.5 * np.sin(2 * np.pi * t / 13.0 + phase[0])
+    acc = np.gradient(np.gradient(xy, t, axis=0), t, axis=0)
+    acc = gaussian_filter1d(acc, 0.3 / (t[1] - t[0]), axis=0, mode="nearest")
+    yaw = heading + env * 0.4 * np.sin(2 * np.pi * t / 9.0 + phase[1])
+    a_fwd = acc[:, 0] * np.cos(yaw) + acc[:, 1] * np.sin(yaw)
+    a_left = -acc[:, 0] * np.sin(yaw) + acc[:, 1] * np.cos(yaw)
+    values[:, 3] = -np.arctan2(a_left, GRAVITY_MPS2)
+    values[:, 4] = np.arctan2(a_fwd, GRAVITY_MPS2)
+    values[:, 5] = yaw
+    return values
+
+
+def _elevator(world: World, duration_s: float, rng: np.random.Generator) -> SimTrajectory:
+    """Drive into the cab on the top floor, turn around, ride one floor down, drive out."""
+    elev = world.elevator
+    style = STYLES["ground"]
+    z_top, z_low = elev.floor_z_m[-1], elev.floor_z_m[-2]
+    cab, door = elev.center_xy, elev.door_approach_xy
+    approach = np.array([[door[0] - 8.0, door[1]], [door[0] - 1.2, door[1]],
+                         [cab[0], door[1] + 0.5], cab])
+    t1, xy1, h1 = _timed_path(approach, style, 0.0, None, closed=False)
+    t_in = t1[-1]
+    turn_end = t_in + 5.0
+    ride_start = turn_end + 1.5
+    ride_s = max(4.0, 1.6 * abs(z_top - z_low))
+    ride_end = ride_start + ride_s
+    exit_start = ride_end + 1.5
+    exit_path = np.array([cab, [cab[0], door[1] + 0.5], [door[0] - 1.2, door[1]],
+                          *world.routes["loop"][::-1]])
+    t3, xy3, h3 = _timed_path(exit_path, style, exit_start, duration_s + 1.0, closed=False)
+    if ride_end + 2.0 > duration_s:
+        raise ConfigError(f"trajectory 'elevator' needs --duration >= {ride_end + 2.0:.0f} s "
+                          f"to finish the ride (got {duration_s:g} s)")
+    yaw_in = h1[-1]
+    yaw_out = yaw_in + np.pi
+    h3 = h3 + np.round((yaw_out - h3[0]) / (2 * np.pi)) * 2 * np.pi
+    hold = [(turn_end, yaw_out, z_top), (ride_start, yaw_out, z_top), (ride_end, yaw_out, z_low)]
+    t = np.concatenate([t1, [h[0] for h in hold], t3])
+    values = np.zeros((len(t), 6))
+    values[: len(t1), :2], values[: len(t1), 2], values[: len(t1), 5] = xy1, z_top, h1
+    for i, (_, yaw, z) in enumerate(hold):
+        values[len(t1) + i, :2], values[len(t1) + i, 2], values[len(t1) + i, 5] = cab, z, yaw
+    values[len(t1) + 3:, :2], values[len(t1) + 3:, 2], values[len(t1) + 3:, 5] = xy3, z_low, h3
+    stops = np.zeros(len(t), dtype=bool)
+    stops[len(t1) - 1: len(t1) + 4] = True
+    carrier = QuinticHermite(np.array([0.0, ride_start, ride_end, max(duration_s, ride_end) + 1]),
+                             np.array([[0.0], [0.0], [z_low - z_top], [z_low - z_top]]),
+                             np.zeros((4, 1)))
+    return SimTrajectory("elevator", world, t, values, stops, duration_s, carrier=carrier,
+                         door_closed_s=(ride_start - 1.0, ride_end + 1.0), cab_z0_m=z_top)
+
+
+def build_trajectory(world: World, kind: str, duration_s: float, seed: int = 0) -> SimTrajectory:
+    """The trajectory `kind` through `world`, lasting `duration_s` seconds."""
+    if not duration_s > 0:
+        raise ConfigError(f"--duration must be > 0 seconds, got {duration_s:g}")
+    valid = VALID[world.name]
+    if kind not in valid:
+        raise ConfigError(f"trajectory {kind!r} does not fit world {world.name!r}; "
+                          f"choose one of {', '.join(valid)}")
+    rng = np.random.default_rng([seed, 7])
+    if kind == "elevator":
+        return _elevator(world, duration_s, rng)
+    rig = {"loop": "ground", "kidnap": "ground"}.get(kind, kind)
+    route = world.routes[world.kidnap_route if kind == "kidnap" else kind]
+    level = len(world.floor_z_m) - 1 if kind == "kidnap" else 0
+    z_ref = world.floor_z_m[level]
+    t, xy, heading = _timed_path(route, STYLES[rig], 0.0, duration_s + 1.0, closed=True)
+    values = _pose_values(world, rig, t, xy, heading, z_ref, world.name == "building", rng)
+    stops = np.zeros(len(t), dtype=bool)
+    stops[[0, -1]] = True
+    kidnap_t = 0.5 * duration_s if kind == "kidnap" else None
+    return SimTrajectory(kind, world, t, values, stops, duration_s, kidnap_t_s=kidnap_t)
