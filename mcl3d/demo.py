@@ -1,0 +1,63 @@
+"""`mcl3d demo`: the whole chain on built-in data that the simulator makes on the spot.
+
+Each run writes into a fresh `<root>/<UTC time>/` folder (and points `<root>/latest` at it),
+so running the demo again never overwrites an earlier result.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from rich.console import RenderableType
+
+from mcl3d.errors import OutputExistsError
+
+
+@dataclass(frozen=True)
+class DemoRequest:
+    root: Path = Path("demo")
+    seed: int = 0
+    duration_s: float = 8.0
+    sensor: str = "vlp16"
+
+
+@dataclass
+class DemoStep:
+    title: str
+    command: str  # the equivalent command line, so users can repeat the step by hand
+    output: list[RenderableType]
+
+
+def _run_folder(root: Path) -> Path:
+    root.mkdir(parents=True, exist_ok=True)
+    folder = root / time.strftime("%Y%m%d-%H%M%S", time.gmtime())
+    if folder.exists():
+        raise OutputExistsError(f"{folder} already exists; wait a second and run the demo again")
+    folder.mkdir()
+    latest = root / "latest"
+    with contextlib.suppress(FileNotFoundError):
+        latest.unlink()
+    os.symlink(folder.name, latest)
+    return folder
+
+
+def steps(req: DemoRequest):
+    """Run the demo one step at a time, yielding each finished `DemoStep`."""
+    from mcl3d.console import summary_table
+    from mcl3d.logs.info import log_info, render
+    from mcl3d.sim.pipeline import SimulateRequest, summary_rows
+    from mcl3d.sim.pipeline import run as simulate
+
+    folder = _run_folder(req.root)
+    log = folder / "office.mcap"
+    sim = simulate(SimulateRequest(world="office", sensor=req.sensor, trajectory="ground",
+                                   duration_s=req.duration_s, seed=req.seed, output=log))
+    yield DemoStep("Simulate a short office log",
+                   f"mcl3d simulate office --sensor {req.sensor} --trajectory ground "
+                   f"--duration {req.duration_s:g} --seed {req.seed} -o {log}",
+                   [summary_table("Simulation", summary_rows(sim))])
+    yield DemoStep("Inspect the log", f"mcl3d info {log}", list(render(log_info(log))))
