@@ -6,6 +6,7 @@ import pytest
 
 def _fields(n):
     import taichi as ti
+
     from mcl3d.kernels import resample
 
     f = {name: ti.field(ti.f32, shape=n) for name in ("log_w", "w", "cdf")}
@@ -69,6 +70,7 @@ def test_systematic_selection_matches_numpy(ti_runtime):
 
 def test_counter_rng_is_reproducible_and_well_distributed(ti_runtime):
     import taichi as ti
+
     from mcl3d.kernels import random
 
     n = 200_000

@@ -1,0 +1,517 @@
+"""Two-level TSDF kernels: lookups for other kernels, block allocation, fusion, block I/O.
+
+Every function takes the map `m` as `ti.template()` (mcl3d.maps.tsdf.TsdfMap, compiled
+once per map: its geometry is baked in as constants), a data-oriented container holding
+
+- fields `coarse` (i32 [cx, cy, cz]: block id >= 0, or UNKNOWN / OVERFLOW / FREE),
+  `sdf`, `weight` (pool [capacity, 8, 8, 8], f32 or f16), `alloc_flag` (i32 like
+  `coarse`), `block_count` (i32 scalar), `block_coord` (ivec3 [capacity]), `block_free`
+  (i32 [capacity]) and, when `writable`, `free_hits` (f32 pool: rays that crossed a voxel
+  in front of their band);
+- constants `voxel_size_m`, `truncation_m`, `origin_m` (3 floats: the corner of voxel
+  (0, 0, 0)), `coarse_dims` (3 ints), `capacity`, `writable` (bool).
+
+Voxel (i, j, k) covers origin + [i, i+1) x [j, j+1) x [k, k+1) voxels; its value is the
+signed distance at its centre, positive in free space, clamped to +-truncation.
+
+While a map is being built the pool holds running sums (sdf = sum of w*d, weight = sum of
+w), so that rays and points fuse with atomic adds and no update is lost when several rays
+touch one voxel in the same launch; `finalize_blocks` turns sums into distances once.
+"""
+
+import taichi as ti
+
+from mcl3d.kernels.se3 import pose_interpolate, quat_rotate
+
+BLOCK = 8
+UNKNOWN = -1  # never observed
+OVERFLOW = -2  # needed, but the pool was full
+FREE = -3  # observed, every voxel free (no surface within truncation)
+FREE_WEIGHT = 1.0  # the weight a query reports for a voxel of a FREE block
+MAX_FOOTPRINT_STEPS = 4  # a scan point's band patch is at most 9 x 9 half-voxel samples
+
+STATE_UNKNOWN = 0
+STATE_OBSERVED = 1  # observed, near or behind a surface (d < truncation)
+STATE_FREE = 2  # observed, at least the truncation distance from any surface
+
+vec2 = ti.math.vec2
+vec3 = ti.math.vec3
+vec4 = ti.math.vec4
+ivec3 = ti.math.ivec3
+_BIG = 1e30
+
+
+# ----------------------------------------------------------------------------- lookups
+@ti.func
+def world_to_grid(m: ti.template(), p: vec3) -> vec3:
+    """Continuous voxel coordinates: voxel i spans [i, i+1)."""
+    o = vec3(m.origin_m[0], m.origin_m[1], m.origin_m[2])
+    return (p - o) * (1.0 / m.voxel_size_m)
+
+
+@ti.func
+def voxel_center(m: ti.template(), g: ivec3) -> vec3:
+    o = vec3(m.origin_m[0], m.origin_m[1], m.origin_m[2])
+    return o + (ti.cast(g, ti.f32) + 0.5) * m.voxel_size_m
+
+
+@ti.func
+def in_grid(m: ti.template(), g: ivec3) -> bool:
+    return (0 <= g[0] < m.coarse_dims[0] * BLOCK and 0 <= g[1] < m.coarse_dims[1] * BLOCK
+            and 0 <= g[2] < m.coarse_dims[2] * BLOCK)
+
+
+@ti.func
+def voxel_dw(m: ti.template(), g: ivec3) -> vec2:
+    """(signed distance, weight) of voxel g; unknown and outside the map give (trunc, 0)."""
+    out = vec2(m.truncation_m, 0.0)
+    if in_grid(m, g):
+        b = m.coarse[g[0] >> 3, g[1] >> 3, g[2] >> 3]
+        if b >= 0:
+            out = vec2(ti.cast(m.sdf[b, g[0] & 7, g[1] & 7, g[2] & 7], ti.f32),
+                       ti.cast(m.weight[b, g[0] & 7, g[1] & 7, g[2] & 7], ti.f32))
+        elif b == FREE:
+            out = vec2(m.truncation_m, FREE_WEIGHT)
+    return out
+
+
+@ti.func
+def sdf_nearest(m: ti.template(), p: vec3) -> vec2:
+    """(d, w) of the voxel containing world point p (w = 0: unknown)."""
+    return voxel_dw(m, ti.cast(ti.floor(world_to_grid(m, p)), ti.i32))
+
+
+@ti.func
+def voxel_state(m: ti.template(), g: ivec3) -> ti.i32:
+    dw = voxel_dw(m, g)
+    state = STATE_UNKNOWN
+    if dw[1] > 0.0:
+        state = STATE_OBSERVED
+        if dw[0] >= m.truncation_m * 0.999:
+            state = STATE_FREE
+    return state
+
+
+@ti.func
+def state_at(m: ti.template(), p: vec3) -> ti.i32:
+    return voxel_state(m, ti.cast(ti.floor(world_to_grid(m, p)), ti.i32))
+
+
+@ti.func
+def sdf_trilinear(m: ti.template(), p: vec3) -> vec2:
+    """(d, w): d interpolated between the 8 surrounding voxel centres; w their smallest weight.
+
+    Unknown corners count as +truncation, so w = 0 flags a value that mixes in unknowns.
+    """
+    g = world_to_grid(m, p) - 0.5
+    i0 = ti.cast(ti.floor(g), ti.i32)
+    f = g - ti.cast(i0, ti.f32)
+    d = 0.0
+    w = _BIG
+    for dx, dy, dz in ti.static(ti.ndrange(2, 2, 2)):
+        dw = voxel_dw(m, i0 + ivec3(dx, dy, dz))
+        c = ((f[0] if dx else 1.0 - f[0]) * (f[1] if dy else 1.0 - f[1])
+             * (f[2] if dz else 1.0 - f[2]))
+        d += c * dw[0]
+        w = ti.min(w, dw[1])
+    return vec2(d, w)
+
+
+@ti.func
+def sdf_trilinear_grad(m: ti.template(), p: vec3) -> vec4:
+    """(d, dd/dx, dd/dy, dd/dz) of the trilinear interpolant at p, gradient in 1/m units."""
+    g = world_to_grid(m, p) - 0.5
+    i0 = ti.cast(ti.floor(g), ti.i32)
+    f = g - ti.cast(i0, ti.f32)
+    out = vec4(0.0)
+    for dx, dy, dz in ti.static(ti.ndrange(2, 2, 2)):
+        v = voxel_dw(m, i0 + ivec3(dx, dy, dz))[0]
+        wx = f[0] if dx else 1.0 - f[0]
+        wy = f[1] if dy else 1.0 - f[1]
+        wz = f[2] if dz else 1.0 - f[2]
+        sx = 1.0 if dx else -1.0
+        sy = 1.0 if dy else -1.0
+        sz = 1.0 if dz else -1.0
+        out += v * vec4(wx * wy * wz, sx * wy * wz, wx * sy * wz, wx * wy * sz)
+    inv = 1.0 / m.voxel_size_m
+    return vec4(out[0], out[1] * inv, out[2] * inv, out[3] * inv)
+
+
+# ------------------------------------------------------------------------- allocation
+@ti.func
+def allocate_block(m: ti.template(), bx: ti.i32, by: ti.i32, bz: ti.i32):
+    """Give block (bx, by, bz) a pool slot; exactly one thread wins (atomic flag + counter).
+
+    Readers must look at `coarse` in a later launch. Past capacity the counter still counts,
+    so the caller learns how many blocks were needed.
+    """
+    if (0 <= bx < m.coarse_dims[0] and 0 <= by < m.coarse_dims[1]
+            and 0 <= bz < m.coarse_dims[2]):
+        c = m.coarse[bx, by, bz]
+        # nested ifs and no `in`: Taichi does not short-circuit `and` nor support `in`
+        if c == UNKNOWN or c == FREE:  # noqa: SIM102, SIM109
+            if ti.atomic_or(m.alloc_flag[bx, by, bz], 1) == 0:
+                nid = ti.atomic_add(m.block_count[None], 1)
+                if nid < m.capacity:
+                    m.block_coord[nid] = ivec3(bx, by, bz)
+                    m.block_free[nid] = 1 if c == FREE else 0
+                    m.coarse[bx, by, bz] = nid
+                else:
+                    m.coarse[bx, by, bz] = OVERFLOW
+
+
+@ti.kernel
+def fill_coarse(m: ti.template(), start: ti.i32, count: ti.i32, value: ti.i32):
+    """coarse = value and alloc_flag = 0 over flat cells [start, start + count)."""
+    ny = m.coarse_dims[1]
+    nz = m.coarse_dims[2]
+    for k in range(count):
+        i = start + k
+        x = i // (ny * nz)
+        y = (i // nz) % ny
+        z = i % nz
+        m.coarse[x, y, z] = value
+        m.alloc_flag[x, y, z] = 0
+
+
+@ti.kernel
+def reset_count(m: ti.template()):
+    m.block_count[None] = 0
+
+
+@ti.kernel
+def init_blocks(m: ti.template(), start: ti.i32, count: ti.i32, as_sums: ti.i32):
+    """Fresh blocks [start, start+count): unknown, or free when the block was FREE before.
+
+    With `as_sums` the distance slot starts at 0 (an empty sum), else at +truncation.
+    """
+    d0 = m.truncation_m * (1.0 - ti.cast(as_sums, ti.f32))
+    for k, i, j, h in ti.ndrange(count, BLOCK, BLOCK, BLOCK):
+        b = start + k
+        m.sdf[b, i, j, h] = ti.cast(d0, m.sdf.dtype)
+        m.weight[b, i, j, h] = ti.cast(0.0, m.weight.dtype)
+        if ti.static(m.writable):
+            m.free_hits[b, i, j, h] = ti.cast(m.block_free[b], ti.f32) * FREE_WEIGHT
+
+
+@ti.kernel
+def allocate_coords(m: ti.template(), coords: ti.types.ndarray(dtype=ivec3, ndim=1),
+                    n: ti.i32):
+    for i in range(n):
+        c = coords[i]
+        allocate_block(m, c[0], c[1], c[2])
+
+
+@ti.kernel
+def mark_free_coords(m: ti.template(), coords: ti.types.ndarray(dtype=ivec3, ndim=1),
+                     n: ti.i32):
+    """Blocks known to be free of surfaces: UNKNOWN -> FREE (allocated blocks stay)."""
+    for i in range(n):
+        c = coords[i]
+        if (0 <= c[0] < m.coarse_dims[0] and 0 <= c[1] < m.coarse_dims[1]
+                and 0 <= c[2] < m.coarse_dims[2]) and m.coarse[c[0], c[1], c[2]] == UNKNOWN:
+            m.coarse[c[0], c[1], c[2]] = FREE
+
+
+# ------------------------------------------------------------------------ block I/O
+@ti.kernel
+def write_blocks(m: ti.template(), coords: ti.types.ndarray(dtype=ivec3, ndim=1),
+                 sdf: ti.types.ndarray(dtype=ti.f32, ndim=4),
+                 weight: ti.types.ndarray(dtype=ti.f32, ndim=4), n: ti.i32):
+    """Copy values of already allocated blocks, addressed by block coordinates."""
+    for k, i, j, h in ti.ndrange(n, BLOCK, BLOCK, BLOCK):
+        c = coords[k]
+        b = m.coarse[c[0], c[1], c[2]]
+        if b >= 0:
+            m.sdf[b, i, j, h] = ti.cast(sdf[k, i, j, h], m.sdf.dtype)
+            m.weight[b, i, j, h] = ti.cast(weight[k, i, j, h], m.weight.dtype)
+
+
+@ti.kernel
+def read_blocks(m: ti.template(), start: ti.i32, count: ti.i32,
+                coords: ti.types.ndarray(dtype=ivec3, ndim=1),
+                sdf: ti.types.ndarray(dtype=ti.f32, ndim=4),
+                weight: ti.types.ndarray(dtype=ti.f32, ndim=4)):
+    for k, i, j, h in ti.ndrange(count, BLOCK, BLOCK, BLOCK):
+        b = start + k
+        if i == 0 and j == 0 and h == 0:
+            coords[k] = m.block_coord[b]
+        sdf[k, i, j, h] = ti.cast(m.sdf[b, i, j, h], ti.f32)
+        weight[k, i, j, h] = ti.cast(m.weight[b, i, j, h], ti.f32)
+
+
+@ti.kernel
+def finalize_blocks(m: ti.template(), start: ti.i32, count: ti.i32):
+    """Build-time sums -> distances for blocks [start, start+count).
+
+    Voxels with band observations get their weighted mean distance; voxels only crossed by
+    rays become free (+truncation) with the negated number of crossings as weight, a mark
+    for `refine_free_voxels` (run next, then `unmark_free_voxels`).
+    """
+    for k, i, j, h in ti.ndrange(count, BLOCK, BLOCK, BLOCK):
+        b = start + k
+        w = ti.cast(m.weight[b, i, j, h], ti.f32)
+        d = m.truncation_m
+        if w > 0.0:
+            d = ti.math.clamp(ti.cast(m.sdf[b, i, j, h], ti.f32) / w,
+                              -m.truncation_m, m.truncation_m)
+        else:
+            w = -m.free_hits[b, i, j, h]
+        m.sdf[b, i, j, h] = ti.cast(d, m.sdf.dtype)
+        m.weight[b, i, j, h] = ti.cast(w, m.weight.dtype)
+        m.free_hits[b, i, j, h] = 0.0
+
+
+@ti.kernel
+def refine_free_voxels(m: ti.template(), start: ti.i32, count: ti.i32):
+    """Free-only voxels next to the band: distance bounded through band neighbours.
+
+    A ray crossing a voxel proves it free, not that the surface is a truncation away
+    (rays skim floors and pass edges). For a band voxel n at k steps along one of the 26
+    grid directions,
+    d(v) <= k * voxel + |d(n)| (triangle inequality), so the smallest such bound replaces
+    +truncation.
+    """
+    radius = ti.static(int(m.truncation_m / m.voxel_size_m + 0.999))
+    for k, i, j, h in ti.ndrange(count, BLOCK, BLOCK, BLOCK):
+        b = start + k
+        if m.weight[b, i, j, h] < 0.0:
+            g = m.block_coord[b] * BLOCK + ivec3(i, j, h)
+            best = m.truncation_m
+            for n in range(27):
+                e = ivec3(n // 9 - 1, (n // 3) % 3 - 1, n % 3 - 1)
+                length = ti.sqrt(ti.cast(e.dot(e), ti.f32))
+                if n != 13:
+                    for step in range(1, radius + 1):
+                        dw = voxel_dw(m, g + step * e)
+                        if dw[1] > 0.0:
+                            best = ti.min(best, step * length * m.voxel_size_m
+                                          + ti.abs(dw[0]))
+            m.sdf[b, i, j, h] = ti.cast(best, m.sdf.dtype)
+
+
+@ti.kernel
+def unmark_free_voxels(m: ti.template(), start: ti.i32, count: ti.i32):
+    for k, i, j, h in ti.ndrange(count, BLOCK, BLOCK, BLOCK):
+        b = start + k
+        m.weight[b, i, j, h] = ti.abs(m.weight[b, i, j, h])
+
+
+# --------------------------------------------------------------------- scan fusion
+@ti.func
+def accumulate(m: ti.template(), g: ivec3, d: ti.f32, w: ti.f32):
+    """Add one observation (d, w) to the running sums of voxel g, if its block exists."""
+    if in_grid(m, g):
+        b = m.coarse[g[0] >> 3, g[1] >> 3, g[2] >> 3]
+        if b >= 0:
+            ti.atomic_add(m.sdf[b, g[0] & 7, g[1] & 7, g[2] & 7], w * d)
+            ti.atomic_add(m.weight[b, g[0] & 7, g[1] & 7, g[2] & 7], w)
+
+
+@ti.func
+def accumulate_free(m: ti.template(), g: ivec3):
+    """Count a ray passing through voxel g in front of its band (free-space evidence)."""
+    if in_grid(m, g):
+        b = m.coarse[g[0] >> 3, g[1] >> 3, g[2] >> 3]
+        if b >= 0:
+            ti.atomic_add(m.free_hits[b, g[0] & 7, g[1] & 7, g[2] & 7], 1.0)
+
+
+@ti.func
+def ray_setup(p_l: vec3, n_l: vec3, alpha: ti.f32, q0: vec4, t0: vec3, q1: vec4, t1: vec3,
+              use_normals: ti.template()):
+    """World point, sensor origin, ray direction, range, surface normal (facing the
+    sensor; the reversed ray without normals) and the |cos| of the incidence angle.
+
+    The pose is interpolated at the point's time (deskewing).
+    """
+    q, t = pose_interpolate(q0, t0, q1, t1, alpha)
+    p = quat_rotate(q, p_l) + t
+    r = (p - t).norm()
+    u = (p - t) / ti.max(r, 1e-9)
+    nrm = -u
+    c = 1.0
+    if ti.static(use_normals):
+        nw = quat_rotate(q, n_l)
+        nn = nw.norm()
+        if nn > 0.5:
+            nw = nw / nn
+            if nw.dot(u) > 0.0:
+                nw = -nw
+            nrm = nw
+            c = ti.max(-nw.dot(u), 1e-3)
+    return p, t, u, r, nrm, c
+
+
+@ti.func
+def point_ok(p_l: vec3, min_range: ti.f32, max_range: ti.f32) -> bool:
+    r = p_l.norm()
+    return (r >= min_range) and (r <= max_range) and (r == r)
+
+
+@ti.func
+def tangent_basis(n: vec3):
+    """Two unit vectors orthogonal to unit n and to each other."""
+    a = vec3(1.0, 0.0, 0.0)
+    if ti.abs(n[0]) > 0.9:
+        a = vec3(0.0, 1.0, 0.0)
+    t1 = n.cross(a).normalized()
+    return t1, n.cross(t1)
+
+
+@ti.func
+def footprint_steps(m: ti.template(), r: ti.f32, spacing_rad: ti.f32) -> ti.i32:
+    """Half-width, in half-voxel steps, of the patch a point covers on its surface: half
+    the gap to the next ray (r * spacing / 2), so neighbouring rays' patches meet."""
+    rho = 0.5 * r * spacing_rad
+    return ti.min(ti.cast(rho / (0.5 * m.voxel_size_m), ti.i32), MAX_FOOTPRINT_STEPS)
+
+
+@ti.kernel
+def scan_allocate(m: ti.template(), pts: ti.types.ndarray(dtype=vec3, ndim=1),
+                  nrm: ti.types.ndarray(dtype=vec3, ndim=1),
+                  alpha: ti.types.ndarray(dtype=ti.f32, ndim=1), n: ti.i32,
+                  q0: vec4, t0: vec3, q1: vec4, t1: vec3, min_range: ti.f32,
+                  max_range: ti.f32, spacing_rad: ti.f32, behind_m: ti.f32,
+                  use_normals: ti.template()):
+    """Pass 1 of a scan: allocate the blocks of every point's band patch (the samples of
+    scan_fuse's band, allocating when the block changes along a column)."""
+    for i in range(n):
+        if point_ok(pts[i], min_range, max_range):
+            p, _o, _u, r, nr, _c = ray_setup(pts[i], nrm[i], alpha[i], q0, t0, q1, t1,
+                                             use_normals)
+            e1, e2 = tangent_basis(nr)
+            half = 0.5 * m.voxel_size_m
+            k = footprint_steps(m, r, spacing_rad)
+            for a, b in ti.ndrange((-k, k + 1), (-k, k + 1)):
+                base = p + (a * e1 + b * e2) * half
+                last = ivec3(-(1 << 30))
+                for j in range(band_samples(m, behind_m)):
+                    s = ti.min(-behind_m + j * m.voxel_size_m, m.truncation_m)
+                    g = ti.cast(ti.floor(world_to_grid(m, base + s * nr)), ti.i32) >> 3
+                    if (g != last).any():
+                        allocate_block(m, g[0], g[1], g[2])
+                        last = g
+
+
+@ti.func
+def band_samples(m: ti.template(), behind_m: ti.f32) -> ti.i32:
+    """Samples along the normal, a voxel apart, from -behind_m to +truncation (both ends)."""
+    return ti.cast(ti.ceil((behind_m + m.truncation_m) / m.voxel_size_m), ti.i32) + 1
+
+
+@ti.func
+def block_exit(m: ti.template(), o: vec3, u: vec3, g: ivec3) -> ti.f32:
+    """Ray parameter where o + s u leaves the block holding voxel g."""
+    lo = vec3(m.origin_m[0], m.origin_m[1], m.origin_m[2]) + ti.cast(
+        (g >> 3) * BLOCK, ti.f32) * m.voxel_size_m
+    hi = lo + BLOCK * m.voxel_size_m
+    s = _BIG
+    for k in ti.static(range(3)):
+        if u[k] > 1e-9:
+            s = ti.min(s, (hi[k] - o[k]) / u[k])
+        elif u[k] < -1e-9:
+            s = ti.min(s, (lo[k] - o[k]) / u[k])
+    return s
+
+
+@ti.kernel
+def scan_fuse(m: ti.template(), pts: ti.types.ndarray(dtype=vec3, ndim=1),
+              nrm: ti.types.ndarray(dtype=vec3, ndim=1),
+              alpha: ti.types.ndarray(dtype=ti.f32, ndim=1), n: ti.i32,
+              q0: vec4, t0: vec3, q1: vec4, t1: vec3, min_range: ti.f32,
+              max_range: ti.f32, spacing_rad: ti.f32, behind_m: ti.f32,
+              use_normals: ti.template(), carve: ti.template(), sigma_weight_m: ti.f32):
+    """Pass 2 of a scan: the truncation band around each point + free-space carving.
+
+    Band: voxels on a patch of the point's tangent plane (half the gap to the next ray
+    wide, so sparse far rays leave no holes), from behind_m behind the surface to the
+    truncation in front, get the point-to-plane distance (projective distance along the
+    ray without normals), weighted by a Gaussian of their distance along the plane so each
+    voxel is dominated by the rays that hit next to it. Deeper voxels may be closer to the
+    far side of a thin solid, which no ray sees, so the band stops at behind_m.
+    Carving: between the sensor and the point where the ray comes within truncation of the
+    surface plane, blocks that hold no surface become FREE as a whole (the ray jumps block
+    to block) and voxels of allocated blocks count free-space hits; finalize_blocks uses
+    them only for voxels no band reached (a ray passing a voxel says it is free, not how
+    far the surface is).
+    """
+    for i in range(n):
+        if point_ok(pts[i], min_range, max_range):
+            p, o, u, r, nr, c = ray_setup(pts[i], nrm[i], alpha[i], q0, t0, q1, t1,
+                                          use_normals)
+            trunc = m.truncation_m
+            half = 0.5 * m.voxel_size_m
+            if ti.static(carve):
+                s_free = r - trunc / c
+                last = ivec3(-(1 << 30))
+                s = 0.0
+                while s < s_free:
+                    g = ti.cast(ti.floor(world_to_grid(m, o + s * u)), ti.i32)
+                    if not in_grid(m, g):
+                        s += BLOCK * m.voxel_size_m
+                    else:
+                        b = m.coarse[g[0] >> 3, g[1] >> 3, g[2] >> 3]
+                        if b >= 0:
+                            if (g != last).any():
+                                accumulate_free(m, g)
+                                last = g
+                            s += m.voxel_size_m
+                        else:
+                            if b == UNKNOWN:
+                                m.coarse[g[0] >> 3, g[1] >> 3, g[2] >> 3] = FREE
+                            s = ti.max(block_exit(m, o, u, g), s) + 1e-4
+            e1, e2 = tangent_basis(nr)
+            k = footprint_steps(m, r, spacing_rad)
+            k_w = -0.5 / (sigma_weight_m * sigma_weight_m)
+            for a, b in ti.ndrange((-k, k + 1), (-k, k + 1)):
+                base = p + (a * e1 + b * e2) * half
+                last = ivec3(-(1 << 30))
+                for j in range(band_samples(m, behind_m)):
+                    s = ti.min(-behind_m + j * m.voxel_size_m, trunc)
+                    g = ti.cast(ti.floor(world_to_grid(m, base + s * nr)), ti.i32)
+                    if (g != last).any():
+                        last = g
+                        v = voxel_center(m, g) - p
+                        d = v.dot(nr)
+                        if -behind_m <= d <= trunc:
+                            accumulate(m, g, d, ti.exp(k_w * v.dot(v)))
+
+
+# ------------------------------------------------------------ points with normals
+@ti.kernel
+def points_allocate(m: ti.template(), pts: ti.types.ndarray(dtype=vec3, ndim=1), n: ti.i32,
+                    radius_vox: ti.i32):
+    """Allocate every block within radius_vox voxels (a cube) of each world point."""
+    for i in range(n):
+        g = ti.cast(ti.floor(world_to_grid(m, pts[i])), ti.i32)
+        lo = (g - radius_vox) >> 3
+        hi = (g + radius_vox) >> 3
+        for bx in range(lo[0], hi[0] + 1):
+            for by in range(lo[1], hi[1] + 1):
+                for bz in range(lo[2], hi[2] + 1):
+                    allocate_block(m, bx, by, bz)
+
+
+@ti.kernel
+def points_fuse(m: ti.template(), pts: ti.types.ndarray(dtype=vec3, ndim=1),
+                nrm: ti.types.ndarray(dtype=vec3, ndim=1), n: ti.i32, radius_vox: ti.i32,
+                sigma_weight_m: ti.f32, behind_m: ti.f32):
+    """Point-to-plane signed distance of each point's oriented plane into nearby voxels.
+
+    Voxels of the cube of radius_vox within truncation in front of the plane and behind_m
+    behind it get d = (v - p).n, weighted by a Gaussian of their distance to the point, so
+    the nearest points dominate each voxel.
+    """
+    trunc = m.truncation_m
+    k = -0.5 / (sigma_weight_m * sigma_weight_m)
+    for i, dx, dy, dz in ti.ndrange(n, (-radius_vox, radius_vox + 1),
+                                    (-radius_vox, radius_vox + 1),
+                                    (-radius_vox, radius_vox + 1)):
+        p = pts[i]
+        nr = nrm[i]
+        g = ti.cast(ti.floor(world_to_grid(m, p)), ti.i32) + ivec3(dx, dy, dz)
+        v = voxel_center(m, g) - p
+        d = v.dot(nr)
+        if -behind_m <= d <= trunc:
+            accumulate(m, g, d, ti.exp(k * v.dot(v)))

@@ -1,0 +1,374 @@
+"""Building TSDF maps from scans with poses, from point-cloud maps and from meshes.
+
+Defaults: 5 cm voxels and a truncation of 4 voxels (0.20 m). The localization sensor model
+is a Gaussian on the signed distance with sigma about one voxel (5 cm, the accuracy the
+TSDF-MCL paper reaches); 0.20 m keeps the whole Gaussian up to 4 sigma (likelihood 3e-4 of
+its peak) inside the band, where distances are real rather than clamped, and leaves at
+least 3 voxels each side of a surface for trilinear values and gradients. Wider bands cost
+memory and blur thin structures (walls thinner than the band lose their back side).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from pydantic import Field, model_validator
+
+from mcl3d.config import Section
+from mcl3d.errors import MapError, PointCloudError
+from mcl3d.maps.tsdf import BLOCK, CHUNK_CELLS, MapGeometry, TsdfMap
+
+TRUNCATION_VOXELS = 4
+
+
+class BuildConfig(Section):
+    """Parameters of `mcl3d build-map` (units in the names)."""
+
+    voxel_size_m: float = Field(0.05, gt=0.0, le=10.0, description="voxel edge length")
+    truncation_m: float | None = Field(
+        None, gt=0.0, description="truncation distance; default 4 voxels (0.20 m at 5 cm)")
+    capacity_blocks: int = Field(
+        65536, ge=1, description="initial pool size in 8^3 blocks (4 KiB each while building)")
+    max_capacity_blocks: int = Field(
+        1 << 20, ge=1, description="the pool grows up to this many blocks, then fails")
+    min_range_m: float = Field(0.3, ge=0.0, description="scan points closer are ignored")
+    max_range_m: float = Field(120.0, gt=0.0, description="scan points farther are ignored")
+    normals: str = Field("knn", pattern="^(knn|none)$",
+                         description="knn: point-to-plane distances from estimated normals; "
+                                     "none: projective distance along rays (faster)")
+    normal_neighbors: int = Field(12, ge=4, le=64, description="neighbours for normals")
+    ray_spacing_deg: float | None = Field(
+        None, gt=0.0, description="angle between neighbouring rays, sets how wide a patch of "
+                                  "surface each point fills; default: estimated per scan")
+    behind_m: float = Field(
+        0.1, gt=0.0, description="how deep behind a measured surface the band "
+                                 "reaches (solids thinner than twice this are not seen "
+                                 "from their far side)")
+    sigma_weight_m: float | None = Field(
+        None, gt=0.0, description="band weights fall off with distance to the measured "
+                                  "point (Gaussian sigma); default: one "
+                                  "voxel")
+    carve_free_space: bool = Field(True, description="mark space between sensor and band free")
+    free_margin_m: float = Field(
+        2.0, ge=0.0, description="point-cloud and mesh maps: mark free blocks up to this far "
+                                 "from the surface (on the normals' side)")
+    mesh_sign: str = Field("normals", pattern="^(normals|parity)$",
+                           description="inside/outside of a mesh: from triangle normals (they "
+                                       "face free space) or ray parity (closed solids)")
+    frame_id: str = Field("map", min_length=1)
+
+    @model_validator(mode="after")
+    def _check(self) -> BuildConfig:
+        if self.truncation_m is not None and self.truncation_m < self.voxel_size_m:
+            raise ValueError(f"truncation_m ({self.truncation_m}) must be at least one voxel "
+                             f"({self.voxel_size_m})")
+        if self.max_range_m <= self.min_range_m:
+            raise ValueError("max_range_m must be larger than min_range_m")
+        return self
+
+    @property
+    def trunc_m(self) -> float:
+        return self.truncation_m or TRUNCATION_VOXELS * self.voxel_size_m
+
+    @property
+    def sigma_w_m(self) -> float:
+        return self.sigma_weight_m or self.voxel_size_m
+
+
+def new_map(geometry: MapGeometry, config: BuildConfig, needed: int = 0) -> TsdfMap:
+    """A writable map sized min(all cells, capacity) or to `needed` blocks when known."""
+    capacity = min(geometry.n_cells, max(config.capacity_blocks, needed))
+    if capacity > config.max_capacity_blocks:
+        raise MapError(
+            f"the map needs {needed or capacity} blocks, more than max_capacity_blocks "
+            f"{config.max_capacity_blocks}; raise it (--capacity-blocks) or use a larger "
+            f"voxel size")
+    tsdf = TsdfMap(geometry, capacity, frame_id=config.frame_id)
+    tsdf.as_sums = True
+    return tsdf
+
+
+def grown_capacity(tsdf: TsdfMap, config: BuildConfig) -> int:
+    """Capacity for a retry after an overflow, or MapError when past the maximum."""
+    needed = tsdf.requested_blocks
+    if needed > config.max_capacity_blocks:
+        raise MapError(
+            f"the map needs {needed} blocks but max_capacity_blocks is "
+            f"{config.max_capacity_blocks}; raise it (--capacity-blocks {needed}) or use a "
+            f"larger voxel size")
+    return min(int(needed * 1.25) + 16, config.max_capacity_blocks)
+
+
+# ----------------------------------------------------------------------- normals
+def estimate_normals(points: np.ndarray, k: int, viewpoints: np.ndarray | None = None
+                     ) -> np.ndarray:
+    """Unit normals (N, 3) from k nearest neighbours, facing the nearest viewpoint.
+
+    Without viewpoints the orientation is made consistent over the k-NN graph and then
+    flipped so that most near-horizontal surfaces face up (floors and ground dominate the
+    maps of ground robots).
+    """
+    import open3d as o3d
+
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(np.float64)))
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(k))
+    normals = np.asarray(pcd.normals)
+    if viewpoints is not None and len(viewpoints):
+        from scipy.spatial import cKDTree
+
+        _, idx = cKDTree(viewpoints).query(points, k=1, workers=-1)
+        to_view = viewpoints[idx] - points
+        flip = np.einsum("ij,ij->i", normals, to_view) < 0
+        normals[flip] *= -1
+    else:
+        pcd.orient_normals_consistent_tangent_plane(k)
+        normals = np.asarray(pcd.normals)
+        horizontal = np.abs(normals[:, 2]) > 0.9
+        if horizontal.any() and np.median(normals[horizontal, 2]) < 0:
+            normals = -normals
+    return normals.astype(np.float32)
+
+
+# ------------------------------------------------------------------------- scans
+class ScanFuser:
+    """Fuses scans into a TSDF: truncation band per ray plus free-space carving.
+
+    Each scan runs two kernels: allocation of the band's blocks, then band update and
+    carving, which reads the block ids allocated by the first launch.
+    """
+
+    def __init__(self, tsdf: TsdfMap, config: BuildConfig):
+        self.tsdf = tsdf
+        self.config = config
+        self.n_scans = 0
+        self.n_points = 0
+
+    def fuse(self, points_l: np.ndarray, T_start: np.ndarray, T_end: np.ndarray | None = None,
+             alpha: np.ndarray | None = None, normals_l: np.ndarray | None = None) -> None:
+        """Fuse one scan given in the lidar frame.
+
+        `alpha` in [0, 1] per point places it between the poses T_start and T_end
+        (deskewing); without it every point uses T_start.
+        """
+        import taichi as ti
+
+        from mcl3d.geometry import rot_to_quat
+        from mcl3d.kernels import tsdf as k
+
+        pts = np.ascontiguousarray(points_l, dtype=np.float32).reshape(-1, 3)
+        n = len(pts)
+        if n == 0:
+            return
+        cfg = self.config
+        use_normals = cfg.normals == "knn"
+        if use_normals and normals_l is None:
+            normals_l = estimate_normals(pts, cfg.normal_neighbors, np.zeros((1, 3)))
+        nrm = (np.ascontiguousarray(normals_l, dtype=np.float32) if use_normals
+               else np.zeros_like(pts))
+        T_end = T_start if T_end is None else T_end
+        a = (np.zeros(n, np.float32) if alpha is None
+             else np.ascontiguousarray(alpha, dtype=np.float32))
+        q0, q1 = rot_to_quat(T_start[:3, :3]), rot_to_quat(T_end[:3, :3])
+        if np.dot(q0, q1) < 0:
+            q1 = -q1
+        spacing = (np.deg2rad(cfg.ray_spacing_deg) if cfg.ray_spacing_deg
+                   else ray_spacing_rad(pts))
+        args = (ti.math.vec4(*q0), ti.math.vec3(*T_start[:3, 3]),
+                ti.math.vec4(*q1), ti.math.vec3(*T_end[:3, 3]),
+                cfg.min_range_m, cfg.max_range_m, spacing, min(cfg.behind_m, cfg.trunc_m),
+                use_normals)
+        m = self.tsdf
+        for s in range(0, n, CHUNK_CELLS):
+            e = min(n, s + CHUNK_CELLS)
+            before = m.requested_blocks
+            k.scan_allocate(m, pts[s:e], nrm[s:e], a[s:e], e - s, *args)
+            m.init_new_blocks(before, m.requested_blocks)
+            k.scan_fuse(m, pts[s:e], nrm[s:e], a[s:e], e - s, *args, cfg.carve_free_space,
+                        cfg.sigma_w_m)
+        self.n_scans += 1
+        self.n_points += n
+
+
+def ray_spacing_rad(points_l: np.ndarray) -> float:
+    """Mean angle between neighbouring rays of a scan: sqrt(solid angle / rays).
+
+    The solid angle is that of the elevation band the scan covers (a spinning lidar's
+    vertical field of view), from the 1st to the 99th percentile of its elevations.
+    """
+    r = np.linalg.norm(points_l, axis=1)
+    ok = r > 0
+    if ok.sum() < 2:
+        return 0.0
+    elevation = np.arcsin(np.clip(points_l[ok, 2] / r[ok], -1, 1))
+    lo, hi = np.percentile(elevation, [1, 99])
+    solid_angle = 2 * np.pi * max(np.sin(hi) - np.sin(lo), 1e-3)
+    return float(np.sqrt(solid_angle / ok.sum()))
+
+
+# ---------------------------------------------------------------- free-space blocks
+def _candidate_cells(tsdf: TsdfMap, margin_m: float) -> np.ndarray:
+    """Unallocated cells within margin of an allocated block, as (k, 3) coordinates."""
+    from scipy.ndimage import maximum_filter1d
+
+    coarse = tsdf.coarse_numpy()
+    near = (coarse >= 0).astype(np.uint8)
+    r = int(np.ceil(margin_m / tsdf.geometry.block_size_m))
+    if r > 0:
+        for axis in range(3):
+            near = maximum_filter1d(near, size=2 * r + 1, axis=axis)
+    return np.argwhere((near > 0) & (coarse < 0)).astype(np.int32)
+
+
+def _cell_centers(tsdf: TsdfMap, cells: np.ndarray) -> np.ndarray:
+    g = tsdf.geometry
+    return np.asarray(g.origin_m) + (cells + 0.5) * g.block_size_m
+
+
+# ------------------------------------------------------------------- point clouds
+def _cube_blocks(geometry: MapGeometry, pts: np.ndarray, radius_vox: int) -> int:
+    """How many blocks the cubes of radius_vox voxels around the points touch.
+
+    Samples at most a block apart across each cube name every block it touches: counted
+    on the host so the pool is sized once.
+    """
+    g = np.floor((pts - np.asarray(geometry.origin_m)) / geometry.voxel_size_m).astype(np.int64)
+    steps = np.unique(np.round(np.linspace(-radius_vox, radius_vox,
+                                           int(np.ceil(2 * radius_vox / BLOCK)) + 1)))
+    dims = np.asarray(geometry.coarse_dims)
+    cells = set()
+    for dx in steps:
+        for dy in steps:
+            for dz in steps:
+                c = (g + np.array([dx, dy, dz], dtype=np.int64)) >> 3
+                c = np.clip(c, 0, dims - 1)
+                cells.update(np.unique((c[:, 0] * dims[1] + c[:, 1]) * dims[2] + c[:, 2]))
+    return len(cells)
+
+
+def build_from_points(points: np.ndarray, config: BuildConfig, *,
+                      normals: np.ndarray | None = None,
+                      viewpoints: np.ndarray | None = None) -> TsdfMap:
+    """Signed distance from an oriented point cloud (map frame), fused in Taichi.
+
+    Each point's tangent plane writes point-to-plane distances into voxels within the
+    truncation (weighted by distance along the plane); then blocks farther than the
+    truncation from every point, on the normals' side, within free_margin_m, become FREE.
+    """
+    from scipy.spatial import cKDTree
+
+    from mcl3d.kernels import tsdf as k
+
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    if len(pts) < config.normal_neighbors:
+        raise PointCloudError(f"the point cloud has {len(pts)} valid points; at least "
+                              f"{config.normal_neighbors} are needed to estimate normals")
+    if normals is None:
+        normals = estimate_normals(pts, config.normal_neighbors, viewpoints)
+    nrm = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+    if len(nrm) != len(pts):
+        raise PointCloudError(f"{len(nrm)} normals for {len(pts)} points")
+    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
+    trunc = config.trunc_m
+    geometry = MapGeometry.around(pts.min(axis=0), pts.max(axis=0), config.voxel_size_m,
+                                  trunc, margin_m=trunc + config.free_margin_m)
+    radius = int(np.ceil(trunc / config.voxel_size_m))
+    pts32 = np.ascontiguousarray(pts, dtype=np.float32)
+    nrm32 = np.ascontiguousarray(nrm, dtype=np.float32)
+    tsdf = new_map(geometry, config, _cube_blocks(geometry, pts, radius))
+    for s in range(0, len(pts32), CHUNK_CELLS):
+        e = min(len(pts32), s + CHUNK_CELLS)
+        k.points_allocate(tsdf, pts32[s:e], e - s, radius)
+    tsdf.check_capacity()
+    tsdf.init_new_blocks(0, tsdf.n_blocks)
+    per_launch = max(1, (4 << 20) // (2 * radius + 1) ** 3)
+    for s in range(0, len(pts32), per_launch):
+        e = min(len(pts32), s + per_launch)
+        k.points_fuse(tsdf, pts32[s:e], nrm32[s:e], e - s, radius, config.sigma_w_m,
+                      min(config.behind_m, trunc))
+    tsdf.finalize()
+    cells = _candidate_cells(tsdf, config.free_margin_m)
+    if len(cells):
+        centers = _cell_centers(tsdf, cells)
+        dist, idx = cKDTree(pts).query(centers, k=8, workers=-1)
+        side = np.einsum("ckj,ckj->ck", centers[:, None, :] - pts[idx], nrm[idx])
+        clear = dist[:, 0] >= trunc + 0.5 * np.sqrt(3) * geometry.block_size_m
+        outside = (side > 0).sum(axis=1) >= 6
+        tsdf.mark_free(cells[clear & outside])
+    return tsdf
+
+
+# -------------------------------------------------------------------------- meshes
+def _mesh_scene(vertices: np.ndarray, triangles: np.ndarray):
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(vertices, dtype=np.float32)),
+                        o3d.core.Tensor(np.ascontiguousarray(triangles, dtype=np.uint32)))
+    return scene
+
+
+def mesh_signed_distance(scene, query: np.ndarray, sign: str) -> np.ndarray:
+    """Exact distance to the mesh with the sign from triangle normals or ray parity."""
+    import open3d as o3d
+
+    out = np.empty(len(query), np.float32)
+    step = 1 << 20
+    for s in range(0, len(query), step):
+        q = np.ascontiguousarray(query[s:s + step], dtype=np.float32)
+        if sign == "parity":
+            out[s:s + len(q)] = scene.compute_signed_distance(o3d.core.Tensor(q)).numpy()
+            continue
+        res = scene.compute_closest_points(o3d.core.Tensor(q))
+        diff = q - res["points"].numpy()
+        dist = np.linalg.norm(diff, axis=1)
+        facing = np.einsum("ij,ij->i", diff, res["primitive_normals"].numpy())
+        out[s:s + len(q)] = np.where(facing >= 0, dist, -dist)
+    return out
+
+
+def build_from_mesh(vertices: np.ndarray, triangles: np.ndarray, config: BuildConfig
+                    ) -> TsdfMap:
+    """Exact signed distance to a triangle mesh in the blocks near its surface.
+
+    Blocks whose centre is farther than truncation + half a block diagonal from the mesh
+    hold no band voxel: they become FREE on the free side (within free_margin_m of the
+    surface, or everywhere inside the mesh bounds for parity) and stay unknown inside
+    solids. Blocks near the surface get the exact distance at every voxel centre.
+    """
+    vertices = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+    triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    if len(triangles) == 0 or len(vertices) < 3:
+        raise PointCloudError("the mesh has no triangles")
+    if not np.isfinite(vertices).all():
+        raise PointCloudError("the mesh has NaN or inf vertices")
+    if triangles.min() < 0 or triangles.max() >= len(vertices):
+        raise PointCloudError("the mesh has triangle indices outside its vertex list")
+    trunc = config.trunc_m
+    geometry = MapGeometry.around(vertices.min(axis=0), vertices.max(axis=0),
+                                  config.voxel_size_m, trunc, margin_m=trunc)
+    scene = _mesh_scene(vertices, triangles)
+    dims = np.asarray(geometry.coarse_dims)
+    cells = np.stack(np.meshgrid(*[np.arange(n) for n in dims], indexing="ij"),
+                     axis=-1).reshape(-1, 3).astype(np.int32)
+    origin = np.asarray(geometry.origin_m)
+    centers = origin + (cells + 0.5) * geometry.block_size_m
+    sd = mesh_signed_distance(scene, centers, config.mesh_sign)
+    half_diag = 0.5 * np.sqrt(3) * geometry.block_size_m
+    near = np.abs(sd) < trunc + half_diag + 1e-6
+    free = (sd >= trunc + half_diag) & (sd <= config.free_margin_m + half_diag)
+    near_cells = cells[near]
+    tsdf = new_map(geometry, config, len(near_cells))
+    tsdf.as_sums = False
+    tsdf.mark_free(cells[free])
+    tsdf.allocate(near_cells)
+    local = np.stack(np.meshgrid(*[np.arange(BLOCK)] * 3, indexing="ij"), axis=-1)
+    per = 4096
+    for s in range(0, len(near_cells), per):
+        c = near_cells[s:s + per]
+        vox = (c[:, None, None, None, :] * BLOCK + local[None]).reshape(-1, 3)
+        d = mesh_signed_distance(scene, origin + (vox + 0.5) * config.voxel_size_m,
+                                 config.mesh_sign)
+        d = np.clip(d, -trunc, trunc).reshape(len(c), BLOCK, BLOCK, BLOCK)
+        tsdf.write_blocks(c, d, np.ones_like(d))
+    return tsdf
+

@@ -1,0 +1,202 @@
+"""The `.tsdf` map file: a zip of .npy arrays (numpy's npz) with a JSON header.
+
+Members:
+- `header` — JSON text: format name and version, geometry (voxel size, truncation, origin,
+  coarse dims), frame id, dtypes, block counts, how and from what the map was built, and
+  the mcl3d version;
+- `block_coords` (n, 3) int32 — coordinates of the allocated blocks, lexicographic order;
+- `sdf` (n, 8, 8, 8) float32 or float16 — signed distance in m at voxel centres, indexed
+  [block, x, y, z];
+- `weight` (n, 8, 8, 8) same dtype — observation weight, 0 = unknown;
+- `free_coords` (k, 3) int32 — blocks observed free of surfaces (not stored voxel by voxel).
+
+Zip members carry CRC-32 checksums, so truncated or corrupted files are caught on load.
+Only allocated blocks are stored, compressed; unknown space costs nothing.
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
+import zipfile
+import zlib
+from pathlib import Path
+
+import numpy as np
+
+from mcl3d import __version__
+from mcl3d.errors import ConfigError, MapError
+from mcl3d.maps.tsdf import BLOCK, BlockData, MapGeometry, TsdfMap
+from mcl3d.outputs import atomic_path
+
+FORMAT = "mcl3d-tsdf"
+FORMAT_VERSION = 1
+MEMBERS = ("header", "block_coords", "sdf", "weight", "free_coords")
+
+
+def make_header(tsdf: TsdfMap, data: BlockData, source: dict, build: dict,
+                f16: bool) -> dict:
+    g = tsdf.geometry
+    dtype = "float16" if f16 else "float32"
+    return {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "mcl3d_version": __version__,
+        "created_utc": datetime.datetime.now(datetime.timezone.utc).strftime(
+            "%Y-%m-%dT%H:%M:%SZ"),
+        "frame_id": tsdf.frame_id,
+        "voxel_size_m": g.voxel_size_m,
+        "truncation_m": g.truncation_m,
+        "origin_m": list(g.origin_m),
+        "coarse_dims": list(g.coarse_dims),
+        "block_size_voxels": BLOCK,
+        "distance_dtype": dtype,
+        "weight_dtype": dtype,
+        "n_blocks": len(data.coords),
+        "n_free_blocks": len(data.free_coords),
+        "source": source,
+        "build": build,
+    }
+
+
+def save_map(path: Path, tsdf: TsdfMap, *, source: dict, build: dict,
+             f16: bool = False) -> dict:
+    """Write the map atomically (a temp file renamed over `path`); returns the header."""
+    tsdf.finalize()
+    data = tsdf.blocks().sorted()
+    header = make_header(tsdf, data, source, build, f16)
+    dtype = np.float16 if f16 else np.float32
+    with atomic_path(Path(path)) as tmp, open(tmp, "wb") as f:
+        np.savez_compressed(
+            f, header=np.array(json.dumps(header)), block_coords=data.coords.astype(np.int32),
+            sdf=data.sdf.astype(dtype), weight=data.weight.astype(dtype),
+            free_coords=data.free_coords.astype(np.int32))
+    return header
+
+
+def _open(path: Path):
+    path = Path(path)
+    if not path.is_file():
+        raise MapError(f"map file {path} does not exist")
+    if not zipfile.is_zipfile(path):
+        raise MapError(f"{path} is not an mcl3d map (.tsdf): not a zip container; it may be "
+                       f"truncated or another format")
+    try:
+        npz = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+        raise MapError(f"{path} is truncated or corrupt: {exc}") from exc
+    missing = [m for m in MEMBERS if m not in npz.files]
+    if missing:
+        raise MapError(f"{path} lacks the member(s) {', '.join(missing)}; "
+                       f"it is not a complete mcl3d map")
+    return npz
+
+
+def _member(npz, path: Path, name: str) -> np.ndarray:
+    try:
+        return npz[name]
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError, zlib.error) as exc:
+        raise MapError(f"{path}: member '{name}' is truncated or corrupt ({exc})") from exc
+
+
+def _check_header(path: Path, header: dict) -> MapGeometry:
+    if header.get("format") != FORMAT:
+        raise MapError(f"{path} is not an mcl3d TSDF map (format {header.get('format')!r})")
+    version = header.get("format_version")
+    if version != FORMAT_VERSION:
+        raise MapError(f"{path} has map format version {version}; this mcl3d "
+                       f"({__version__}) reads version {FORMAT_VERSION}; rebuild the map "
+                       f"with `mcl3d build-map` or use a matching mcl3d version")
+    for key in ("voxel_size_m", "truncation_m", "origin_m", "coarse_dims", "n_blocks",
+                "n_free_blocks", "distance_dtype", "frame_id"):
+        if key not in header:
+            raise MapError(f"{path}: header lacks '{key}'")
+    if header.get("block_size_voxels") != BLOCK:
+        raise MapError(f"{path}: block size {header.get('block_size_voxels')} voxels, "
+                       f"expected {BLOCK}")
+    if header["distance_dtype"] not in ("float32", "float16"):
+        raise MapError(f"{path}: unknown distance dtype {header['distance_dtype']!r}")
+    try:
+        return MapGeometry(float(header["voxel_size_m"]), float(header["truncation_m"]),
+                           tuple(float(x) for x in header["origin_m"]),
+                           tuple(int(x) for x in header["coarse_dims"]))
+    except (TypeError, ValueError, ConfigError) as exc:
+        raise MapError(f"{path}: invalid map geometry in header ({exc})") from exc
+
+
+def read_header(path: Path) -> dict:
+    """The header of a map file, validated (without loading the blocks)."""
+    npz = _open(path)
+    with npz:
+        try:
+            header = json.loads(str(_member(npz, path, "header")))
+        except json.JSONDecodeError as exc:
+            raise MapError(f"{path}: the header is not valid JSON ({exc})") from exc
+        if not isinstance(header, dict):
+            raise MapError(f"{path}: the header is not a JSON object")
+        _check_header(path, header)
+    return header
+
+
+def _check_coords(path: Path, name: str, coords: np.ndarray, n: int, dims) -> None:
+    if coords.ndim != 2 or coords.shape != (n, 3) or coords.dtype.kind != "i":
+        raise MapError(f"{path}: '{name}' has shape {coords.shape} dtype {coords.dtype}; the "
+                       f"header says {n} blocks of 3 int coordinates (inconsistent sizes)")
+    if n and ((coords.min(axis=0) < 0).any() or (coords.max(axis=0) >= dims).any()):
+        raise MapError(f"{path}: '{name}' has block coordinates outside the coarse grid {dims}")
+    if n and len(np.unique(coords, axis=0)) != n:
+        raise MapError(f"{path}: '{name}' lists a block twice")
+
+
+def read_blocks(path: Path) -> tuple[dict, MapGeometry, BlockData]:
+    """Header, geometry and blocks of a map file, with every size and value checked."""
+    path = Path(path)
+    header = read_header(path)
+    geometry = _check_header(path, header)
+    dims = np.asarray(geometry.coarse_dims)
+    with _open(path) as npz:
+        coords = _member(npz, path, "block_coords")
+        sdf = _member(npz, path, "sdf")
+        weight = _member(npz, path, "weight")
+        free = _member(npz, path, "free_coords")
+    n = int(header["n_blocks"])
+    _check_coords(path, "block_coords", coords, n, dims)
+    _check_coords(path, "free_coords", free, int(header["n_free_blocks"]), dims)
+    for name, arr in (("sdf", sdf), ("weight", weight)):
+        if arr.shape != (n, BLOCK, BLOCK, BLOCK):
+            raise MapError(f"{path}: '{name}' has shape {arr.shape}, expected "
+                           f"({n}, {BLOCK}, {BLOCK}, {BLOCK}) (inconsistent sizes)")
+        if arr.dtype != np.dtype(header["distance_dtype"]):
+            raise MapError(f"{path}: '{name}' is {arr.dtype}, the header says "
+                           f"{header['distance_dtype']}")
+        if not np.isfinite(arr).all():
+            raise MapError(f"{path}: '{name}' contains NaN or inf")
+    if n and np.abs(sdf).max() > geometry.truncation_m * 1.01:
+        raise MapError(f"{path}: distances exceed the truncation {geometry.truncation_m} m")
+    if n and weight.min() < 0:
+        raise MapError(f"{path}: negative weights")
+    if n and len(free) and (coarse_overlap(coords, free)):
+        raise MapError(f"{path}: a block is both allocated and free")
+    return header, geometry, BlockData(coords.astype(np.int32), sdf, weight,
+                                       free.astype(np.int32))
+
+
+def coarse_overlap(a: np.ndarray, b: np.ndarray) -> bool:
+    both = np.concatenate([a, b]).astype(np.int64)
+    return len(np.unique(both, axis=0)) != len(both)
+
+
+def load_map(path: Path, *, f16: bool | None = None, extra_capacity_blocks: int = 0) -> TsdfMap:
+    """Load a map file onto the device (Taichi must be started).
+
+    `f16` None keeps the file's precision; `extra_capacity_blocks` leaves room to fuse more.
+    """
+    header, geometry, data = read_blocks(path)
+    use_f16 = header["distance_dtype"] == "float16" if f16 is None else f16
+    tsdf = TsdfMap(geometry, max(len(data.coords) + extra_capacity_blocks, 1), f16=use_f16,
+                   writable=not use_f16, frame_id=str(header["frame_id"]))
+    tsdf.mark_free(data.free_coords)
+    tsdf.allocate(data.coords)
+    tsdf.write_blocks(data.coords, data.sdf, data.weight)
+    tsdf.header = header
+    return tsdf

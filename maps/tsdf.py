@@ -1,0 +1,311 @@
+"""The two-level TSDF container: a dense coarse grid of block ids + a pool of 8³ blocks.
+
+The container owns the Taichi fields (allocated once, from the capacity given) and the
+map's geometry; the kernels that read and write them live in mcl3d.kernels.tsdf and take
+the container as a template argument, so lookups compile to plain field reads on every
+backend. Geometry (voxel size, truncation, origin, dims) is fixed at construction.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from mcl3d.errors import ConfigError, MapError
+
+BLOCK = 8
+VOXELS_PER_BLOCK = BLOCK**3
+CHUNK_BLOCKS = 8192  # blocks per launch: 8192 * 512 = 4M iterations, under Vulkan's 8M limit
+CHUNK_CELLS = 4 << 20  # coarse cells per launch and points per launch
+
+
+@dataclass(frozen=True)
+class MapGeometry:
+    """Where the map is: voxel i covers origin + [i, i+1) voxels along each axis."""
+
+    voxel_size_m: float
+    truncation_m: float
+    origin_m: tuple[float, float, float]
+    coarse_dims: tuple[int, int, int]
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.voxel_size_m) and self.voxel_size_m > 0):
+            raise ConfigError(f"voxel size must be > 0 m, got {self.voxel_size_m}")
+        if not (np.isfinite(self.truncation_m) and self.truncation_m >= self.voxel_size_m):
+            raise ConfigError(
+                f"truncation ({self.truncation_m} m) must be at least one voxel "
+                f"({self.voxel_size_m} m)")
+        if len(self.coarse_dims) != 3 or min(self.coarse_dims) < 1:
+            raise ConfigError(f"coarse grid dims must be 3 positive ints, got {self.coarse_dims}")
+        if not np.all(np.isfinite(self.origin_m)):
+            raise ConfigError(f"map origin must be finite, got {self.origin_m}")
+
+    @property
+    def block_size_m(self) -> float:
+        return self.voxel_size_m * BLOCK
+
+    @property
+    def n_cells(self) -> int:
+        return int(np.prod(self.coarse_dims))
+
+    @property
+    def extent_m(self) -> tuple[np.ndarray, np.ndarray]:
+        lo = np.asarray(self.origin_m, dtype=np.float64)
+        return lo, lo + np.asarray(self.coarse_dims) * self.block_size_m
+
+    @staticmethod
+    def around(lo_m, hi_m, voxel_size_m: float, truncation_m: float,
+               margin_m: float = 0.0) -> MapGeometry:
+        """The block-aligned geometry covering the box [lo, hi] plus a margin."""
+        lo = np.asarray(lo_m, dtype=np.float64) - margin_m
+        hi = np.asarray(hi_m, dtype=np.float64) + margin_m
+        if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(hi >= lo)):
+            raise ConfigError(f"cannot build a map over the bounds {lo} .. {hi}")
+        block = voxel_size_m * BLOCK
+        origin = np.round(np.floor(lo / block) * block, 9)
+        dims = np.maximum(np.ceil((hi - origin) / block).astype(np.int64), 1)
+        if np.prod(dims) > 2**31 - 1 or np.any(dims * BLOCK >= 2**30):
+            raise ConfigError(
+                f"the map bounds {lo.round(1)} .. {hi.round(1)} m need {dims.tolist()} blocks of "
+                f"{block} m: too large; use a larger voxel size or crop the input")
+        return MapGeometry(float(voxel_size_m), float(truncation_m),
+                           tuple(float(x) for x in origin), tuple(int(x) for x in dims))
+
+
+def _ti():
+    import taichi as ti
+
+    from mcl3d import runtime
+
+    if runtime.current() is None:
+        raise MapError("the Taichi runtime is not started; call mcl3d.runtime.init(backend) first")
+    return ti
+
+
+@dataclass
+class BlockData:
+    """Allocated blocks on the host: coordinates, distances, weights, plus FREE blocks."""
+
+    coords: np.ndarray  # (n, 3) int32 block coordinates
+    sdf: np.ndarray  # (n, 8, 8, 8) float32 (or float16) signed distances in m
+    weight: np.ndarray  # (n, 8, 8, 8) float32 observation weights (0 = unknown)
+    free_coords: np.ndarray  # (k, 3) int32 blocks observed free of surfaces
+
+    def sorted(self) -> BlockData:
+        """Blocks in lexicographic coordinate order (deterministic files)."""
+        order = np.lexsort(self.coords.T[::-1]) if len(self.coords) else np.arange(0)
+        forder = (np.lexsort(self.free_coords.T[::-1]) if len(self.free_coords)
+                  else np.arange(0))
+        return dataclasses.replace(self, coords=self.coords[order], sdf=self.sdf[order],
+                                   weight=self.weight[order],
+                                   free_coords=self.free_coords[forder])
+
+
+def _data_oriented(cls):
+    """ti.data_oriented without importing taichi at module import (keeps the CLI fast).
+
+    Taichi keys template-kernel caches of data-oriented objects by weak reference, so a
+    map's compiled kernels die with it and a new map never reuses stale constants.
+    """
+    cls._data_oriented = True
+    return cls
+
+
+@_data_oriented
+class TsdfMap:
+    """A TSDF on the device; build with mcl3d.maps.build, load with mcl3d.maps.io.
+
+    `f16` stores distances (and weights) in half precision: half the memory for read-only
+    localization maps. Fusion needs f32 (no f16 atomics on Vulkan).
+    """
+
+    def __init__(self, geometry: MapGeometry, capacity_blocks: int, *, f16: bool = False,
+                 writable: bool = True, frame_id: str = "map"):
+        ti = _ti()
+        if capacity_blocks < 1:
+            raise ConfigError(f"map capacity must be >= 1 block, got {capacity_blocks}")
+        self.geometry = geometry
+        self.frame_id = frame_id
+        self.voxel_size_m = float(geometry.voxel_size_m)
+        self.truncation_m = float(geometry.truncation_m)
+        self.origin_m = tuple(float(x) for x in geometry.origin_m)
+        self.coarse_dims = tuple(int(x) for x in geometry.coarse_dims)
+        self.capacity = int(capacity_blocks)
+        self.f16 = bool(f16)
+        if f16 and writable:
+            raise ConfigError("an f16 map is read-only (no f16 atomics on Vulkan): build in "
+                              "f32, store with f16 distances")
+        self.writable = bool(writable)
+        self.header: dict | None = None  # the file header when loaded from a file
+        self.as_sums = False  # True while being built: the pool holds sums, not distances
+        dtype = ti.f16 if f16 else ti.f32
+        builder = ti.FieldsBuilder()
+        self.coarse = ti.field(ti.i32)
+        self.alloc_flag = ti.field(ti.i32)
+        builder.dense(ti.ijk, self.coarse_dims).place(self.coarse, self.alloc_flag)
+        self.block_count = ti.field(ti.i32)
+        builder.place(self.block_count)
+        self.block_coord = ti.Vector.field(3, ti.i32)
+        self.block_free = ti.field(ti.i32)
+        builder.dense(ti.i, self.capacity).place(self.block_coord, self.block_free)
+        self.sdf = ti.field(dtype)
+        self.weight = ti.field(dtype)
+        pool = builder.dense(ti.i, self.capacity).dense(ti.jkl, BLOCK)
+        pool.place(self.sdf)
+        pool.place(self.weight)
+        if writable:
+            self.free_hits = ti.field(ti.f32)
+            pool.place(self.free_hits)
+        self._tree = builder.finalize()
+        self.clear()
+
+    # ------------------------------------------------------------------ bookkeeping
+    def clear(self) -> None:
+        """Every cell unknown, no block allocated."""
+        from mcl3d.kernels import tsdf as k
+
+        n = self.geometry.n_cells
+        for start in range(0, n, CHUNK_CELLS):
+            k.fill_coarse(self, start, min(CHUNK_CELLS, n - start), k.UNKNOWN)
+        k.reset_count(self)
+
+    def destroy(self) -> None:
+        """Free the device memory now (the object is unusable afterwards)."""
+        if self._tree is not None:
+            self._tree.destroy()
+            self._tree = None
+
+    @property
+    def requested_blocks(self) -> int:
+        """Blocks asked for so far, including those that did not fit."""
+        return int(self.block_count[None])
+
+    @property
+    def n_blocks(self) -> int:
+        return min(self.requested_blocks, self.capacity)
+
+    @property
+    def overflowed(self) -> bool:
+        return self.requested_blocks > self.capacity
+
+    def check_capacity(self) -> None:
+        if self.overflowed:
+            raise MapError(
+                f"the map needs {self.requested_blocks} blocks but its capacity is "
+                f"{self.capacity}; raise the capacity (--capacity-blocks "
+                f"{int(self.requested_blocks * 1.1) + 1}) or use a larger voxel size")
+
+    def bytes_per_block(self) -> int:
+        per_voxel = 2 * (2 if self.f16 else 4) + (4 if self.writable else 0)
+        return VOXELS_PER_BLOCK * per_voxel + 4 * 4  # + coordinate and free flag
+
+    def memory_bytes(self, blocks: int | None = None) -> int:
+        """Device memory: the coarse grid (+ allocation flags) and the pool."""
+        blocks = self.capacity if blocks is None else blocks
+        return self.geometry.n_cells * 8 + blocks * self.bytes_per_block()
+
+    def init_new_blocks(self, start: int, end: int) -> None:
+        """Initialize pool slots [start, end) after an allocation launch."""
+        from mcl3d.kernels import tsdf as k
+
+        end = min(end, self.capacity)
+        for s in range(start, end, CHUNK_BLOCKS):
+            k.init_blocks(self, s, min(CHUNK_BLOCKS, end - s), int(self.as_sums))
+
+    def finalize(self) -> None:
+        """Turn build-time sums into distances; the map is then ready for queries."""
+        from mcl3d.kernels import tsdf as k
+
+        if not self.as_sums:
+            return
+        n = self.n_blocks
+        for kernel in (k.finalize_blocks, k.refine_free_voxels, k.unmark_free_voxels):
+            for s in range(0, n, CHUNK_BLOCKS):
+                kernel(self, s, min(CHUNK_BLOCKS, n - s))
+        self.as_sums = False
+
+    # ---------------------------------------------------------------- host transfer
+    def allocate(self, coords: np.ndarray) -> None:
+        """Allocate the given block coordinates (n, 3) and initialize the new blocks."""
+        from mcl3d.kernels import tsdf as k
+
+        coords = np.ascontiguousarray(coords, dtype=np.int32).reshape(-1, 3)
+        before = self.requested_blocks
+        for s in range(0, len(coords), CHUNK_CELLS):
+            part = coords[s:s + CHUNK_CELLS]
+            k.allocate_coords(self, part, len(part))
+        self.init_new_blocks(before, self.requested_blocks)
+        self.check_capacity()
+
+    def mark_free(self, coords: np.ndarray) -> None:
+        from mcl3d.kernels import tsdf as k
+
+        coords = np.ascontiguousarray(coords, dtype=np.int32).reshape(-1, 3)
+        for s in range(0, len(coords), CHUNK_CELLS):
+            part = coords[s:s + CHUNK_CELLS]
+            k.mark_free_coords(self, part, len(part))
+
+    def write_blocks(self, coords: np.ndarray, sdf: np.ndarray, weight: np.ndarray) -> None:
+        """Set values of allocated blocks (coords (n,3), sdf/weight (n,8,8,8))."""
+        from mcl3d.kernels import tsdf as k
+
+        coords = np.ascontiguousarray(coords, dtype=np.int32).reshape(-1, 3)
+        for s in range(0, len(coords), CHUNK_BLOCKS):
+            e = min(s + CHUNK_BLOCKS, len(coords))
+            k.write_blocks(self, coords[s:e],
+                           np.ascontiguousarray(sdf[s:e], dtype=np.float32),
+                           np.ascontiguousarray(weight[s:e], dtype=np.float32), e - s)
+
+    def coarse_numpy(self) -> np.ndarray:
+        return self.coarse.to_numpy()
+
+    def blocks(self) -> BlockData:
+        """Copy the allocated blocks and the FREE block list to the host."""
+        from mcl3d.kernels import tsdf as k
+
+        n = self.n_blocks
+        coords = np.zeros((n, 3), np.int32)
+        sdf = np.zeros((n, BLOCK, BLOCK, BLOCK), np.float32)
+        weight = np.zeros((n, BLOCK, BLOCK, BLOCK), np.float32)
+        for s in range(0, n, CHUNK_BLOCKS):
+            e = min(s + CHUNK_BLOCKS, n)
+            c = np.zeros((e - s, 3), np.int32)
+            d = np.zeros((e - s, BLOCK, BLOCK, BLOCK), np.float32)
+            w = np.zeros_like(d)
+            k.read_blocks(self, s, e - s, c, d, w)
+            coords[s:e], sdf[s:e], weight[s:e] = c, d, w
+        coarse = self.coarse_numpy()
+        free = np.argwhere(coarse == k.FREE).astype(np.int32)
+        return BlockData(coords, sdf, weight, free)
+
+    # ------------------------------------------------------------------ statistics
+    def stats(self) -> dict:
+        """Counts for summaries: blocks, observed / free voxels, memory."""
+        return block_stats(self.geometry, self.blocks(), self.bytes_per_block())
+
+
+def block_stats(geometry: MapGeometry, data: BlockData, bytes_per_block: int) -> dict:
+    """Blocks, observed / free / surface voxels, and memory against a dense grid."""
+    trunc = geometry.truncation_m
+    observed = data.weight > 0
+    free_vox = observed & (data.sdf >= trunc * 0.999)
+    surface = observed & (np.abs(data.sdf) < 0.5 * geometry.voxel_size_m * np.sqrt(3))
+    n_blocks, n_free = len(data.coords), len(data.free_coords)
+    bytes_per_voxel = data.sdf.dtype.itemsize + data.weight.dtype.itemsize
+    lo, hi = geometry.extent_m
+    return {
+        "blocks": n_blocks,
+        "free_blocks": n_free,
+        "unknown_cells": geometry.n_cells - n_blocks - n_free,
+        "observed_voxels": int(observed.sum()) + n_free * VOXELS_PER_BLOCK,
+        "free_voxels": int(free_vox.sum()) + n_free * VOXELS_PER_BLOCK,
+        "surface_voxels": int(surface.sum()),
+        "bytes_per_block": bytes_per_block,
+        "pool_bytes": n_blocks * bytes_per_block,
+        "coarse_bytes": geometry.n_cells * 4,
+        "dense_grid_bytes": geometry.n_cells * VOXELS_PER_BLOCK * bytes_per_voxel,
+        "extent_lo_m": [round(float(x), 3) for x in lo],
+        "extent_hi_m": [round(float(x), 3) for x in hi],
+    }
