@@ -24,6 +24,8 @@ HDF5_SUFFIXES = (".h5", ".hdf5")
 
 @dataclass
 class BuildMapResult:
+    source: Path
+    output: Path
     source_kind: str
     header: dict
     stats: dict
@@ -271,8 +273,8 @@ class BuildMapPipeline:
         if self.export_points:
             exports["surface_points"] = export.write_points(self.export_points, tsdf.geometry,
                                                             data)
-        return BuildMapResult(kind, header, stats, seconds, self.n_scans, self.n_points,
-                              exports)
+        return BuildMapResult(self.source, self.output, kind, header, stats, seconds,
+                              self.n_scans, self.n_points, exports)
 
 
 def _read_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -284,3 +286,44 @@ def _read_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
     if len(triangles) == 0:
         raise PointCloudError(f"{path}: no triangles could be read (empty or unreadable mesh)")
     return vertices, triangles
+
+
+def format_bytes(n: float) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if n < 1024 or unit == "GiB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    return f"{n:.1f} GiB"
+
+
+def map_rows(header: dict, stats: dict) -> list[tuple[str, str]]:
+    """Summary-table rows describing a map: geometry, blocks, voxels, memory."""
+    lo, hi = stats["extent_lo_m"], stats["extent_hi_m"]
+    size = [round(h - v, 2) for v, h in zip(lo, hi, strict=True)]
+    return [
+        ("voxel / truncation", f"{header['voxel_size_m']} m / {header['truncation_m']} m"),
+        ("extent", f"{lo} .. {hi} m ({size[0]} x {size[1]} x {size[2]} m)"),
+        ("coarse grid", " x ".join(str(d) for d in header["coarse_dims"]) + " blocks of 8³"),
+        ("blocks", f"{stats['blocks']} allocated, {stats['free_blocks']} free, "
+                   f"{stats['unknown_cells']} unknown"),
+        ("voxels", f"{stats['surface_voxels']} on the surface, {stats['observed_voxels']} "
+                   f"observed, {stats['free_voxels']} free"),
+        ("memory (loaded)", f"{format_bytes(stats['pool_bytes'] + stats['coarse_bytes'])} "
+                            f"({stats['bytes_per_block']} B/block) vs dense grid "
+                            f"{format_bytes(stats['dense_grid_bytes'])}"),
+        *([("file", format_bytes(stats["file_bytes"]))] if "file_bytes" in stats else []),
+    ]
+
+
+def summary_rows(result: BuildMapResult, backend: str) -> list[tuple[str, str]]:
+    """Rows of the end-of-build summary table."""
+    rows = [("source", f"{result.source} ({result.source_kind})"),
+            *map_rows(result.header, result.stats),
+            ("time", f"{result.seconds:.2f} s on {backend}")]
+    if result.n_scans:
+        rows.append(("scans", f"{result.n_scans} ({result.scans_per_s:.1f} scans/s, "
+                              f"{result.n_points} points)"))
+    rows.append(("written", str(result.output)))
+    for key, value in result.exports.items():
+        rows.append((key.replace("_", " "), str(value)))
+    return rows

@@ -1,4 +1,5 @@
-"""`mcl3d demo`: the whole chain on built-in data that the simulator makes on the spot.
+"""`mcl3d demo`: the whole chain on built-in data that the simulator makes on the spot:
+simulate an office log, inspect it, build its TSDF map.
 
 Each run writes into a fresh `<root>/<UTC time>/` folder (and points `<root>/latest` at it),
 so running the demo again never overwrites an earlier result.
@@ -23,6 +24,7 @@ class DemoRequest:
     seed: int = 0
     duration_s: float = 8.0
     sensor: str = "vlp16"
+    backend: str = "auto"
 
 
 @dataclass
@@ -47,8 +49,12 @@ def _run_folder(root: Path) -> Path:
 
 def steps(req: DemoRequest):
     """Run the demo one step at a time, yielding each finished `DemoStep`."""
+    from mcl3d import config, runtime
+    from mcl3d.build_map import BuildMapPipeline
+    from mcl3d.build_map import summary_rows as map_summary_rows
     from mcl3d.console import summary_table
     from mcl3d.logs.info import log_info, render
+    from mcl3d.maps.build import BuildConfig
     from mcl3d.sim.pipeline import SimulateRequest, summary_rows
     from mcl3d.sim.pipeline import run as simulate
 
@@ -61,3 +67,13 @@ def steps(req: DemoRequest):
                    f"--duration {req.duration_s:g} --seed {req.seed} -o {log}",
                    [summary_table("Simulation", summary_rows(sim))])
     yield DemoStep("Inspect the log", f"mcl3d info {log}", list(render(log_info(log))))
+
+    backend = runtime.init(req.backend).backend
+    tsdf = folder / "office.tsdf"
+    mesh = folder / "office_map_mesh.ply"
+    built = BuildMapPipeline(log, tsdf, config.build(BuildConfig, {}), f16=True,
+                             export_mesh=mesh).run()
+    yield DemoStep("Build a TSDF map from the log and its ground truth",
+                   f"mcl3d --backend {backend} build-map {log} -o {tsdf} --f16 "
+                   f"--export-mesh {mesh}",
+                   [summary_table("Map built", map_summary_rows(built, backend))])
