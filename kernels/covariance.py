@@ -1,0 +1,67 @@
+"""Plane-regularized point covariances from precomputed neighbour indices (host kNN search).
+
+For each point: the scatter of its neighbours, its smallest eigenvector n (the local surface
+normal), and C = I - (1 - 1e-3) n nᵀ, i.e. eigenvalues (1e-3, 1, 1) along (n, surface);
+the identity when fewer than `min_neighbors` neighbours were found.
+"""
+
+import taichi as ti
+
+JACOBI_SWEEPS = 6  # cyclic Jacobi on 3x3 converges quadratically; 6 sweeps reach f32 precision
+
+
+@ti.func
+def smallest_eigenvector(S: ti.math.mat3) -> ti.math.vec3:
+    """Unit eigenvector of the smallest eigenvalue of a symmetric 3x3 matrix by cyclic Jacobi
+    rotations: robust where closed forms (and ti.sym_eig) fail, e.g. exactly planar points
+    whose scatter has a zero eigenvalue."""
+    A = S / ti.max(S.trace(), 1e-30)
+    V = ti.math.eye(3)
+    for _ in ti.static(range(JACOBI_SWEEPS)):
+        for p, q in ti.static(((0, 1), (0, 2), (1, 2))):
+            apq = A[p, q]
+            if ti.abs(apq) > 1e-12:
+                theta = (A[q, q] - A[p, p]) / (2.0 * apq)
+                t = 1.0 / (ti.abs(theta) + ti.sqrt(theta * theta + 1.0))
+                if theta < 0.0:
+                    t = -t
+                c = 1.0 / ti.sqrt(t * t + 1.0)
+                s = t * c
+                P = ti.math.eye(3)
+                P[p, p] = c
+                P[q, q] = c
+                P[p, q] = s
+                P[q, p] = -s
+                A = P.transpose() @ A @ P
+                V = V @ P
+    smallest = 0
+    for a in ti.static(range(1, 3)):
+        if A[a, a] < A[smallest, smallest]:
+            smallest = a
+    return ti.math.vec3(V[0, smallest], V[1, smallest], V[2, smallest]).normalized()
+
+
+@ti.kernel
+def plane_covariances(points: ti.types.ndarray(), neighbors: ti.types.ndarray(),
+                      counts: ti.types.ndarray(), n: ti.i32, min_neighbors: ti.i32,
+                      normal_variance: ti.f32, out: ti.types.ndarray()):
+    for i in range(n):
+        C = ti.math.eye(3)
+        m = counts[i]
+        if m >= min_neighbors:
+            mean = ti.math.vec3(0.0)
+            for j in range(m):
+                nb = neighbors[i, j]
+                mean += ti.math.vec3(points[nb, 0], points[nb, 1], points[nb, 2])
+            mean /= ti.cast(m, ti.f32)
+            S = ti.math.mat3(0.0)
+            for j in range(m):
+                nb = neighbors[i, j]
+                d = ti.math.vec3(points[nb, 0], points[nb, 1], points[nb, 2]) - mean
+                S += d.outer_product(d)
+            S /= ti.cast(m, ti.f32)
+            normal = smallest_eigenvector(S)
+            C = ti.math.eye(3) - (1.0 - normal_variance) * normal.outer_product(normal)
+        for a in ti.static(range(3)):
+            for b in ti.static(range(3)):
+                out[i, a, b] = C[a, b]

@@ -1,0 +1,252 @@
+"""Batched GICP (distribution-to-distribution) against Gaussian voxel maps.
+
+Terms: a *group* is one pose being optimized, `T_frame_source` (a particle, a scan); a *row*
+is one registration term of a group: a source point range, a target map and a fixed left
+pose `L` so that the row's pose is `L T` (for a keyframe map, L = T_keyframe_frame). With a
+right perturbation `T exp(δ)` the row pose moves by the same `δ`, so every row of a group adds
+to one 6x6 system: particles x neighbour keyframes, or one scan x several map resolutions.
+
+Per correspondence (one voxel lookup, no distance threshold):
+  e = μ_B − R μ_A − t,  M = (C_B + R C_A Rᵀ)⁻¹,  J = [R hat(μ_A), −R]  (rotation first),
+  H += Jᵀ M J,  b += Jᵀ M e,  error += ½ eᵀ M e
+(accumulated with J_c = [hat(R μ_A), −I] in 3x3 blocks, mapped by J = J_c diag(R, R) once per
+chunk: the same numbers, fewer operations), so that error(δ) ≈ error + bᵀδ + ½ δᵀHδ
+(small_gicp's convention) and δ = −H⁻¹ b.
+
+`linearize` runs over (row, chunk of source points) and adds each chunk's sums to its group
+atomically, so one pose uses many threads and 100,000 poses use them all the same way;
+`step` then solves every group's system (Jacobi-scaled, unrolled 6x6 Cholesky) with
+Gauss-Newton or Levenberg-Marquardt acceptance and proposes the next candidate.
+"""
+
+import taichi as ti
+
+from mcl3d.kernels.se3 import pose_compose, pose_retract, quat_to_mat
+from mcl3d.kernels.voxel_hash import lookup
+
+vec3 = ti.math.vec3
+vec6 = ti.types.vector(6, ti.f32)
+mat6 = ti.types.matrix(6, 6, ti.f32)
+
+RUNNING = 0
+CONVERGED = 1
+NO_CORRESPONDENCES = 2
+STALLED = 3  # LM damping blew up without an accepted step: no descent direction left
+
+LOOKAHEAD = 64  # voxel lookups issued before their math (see linearize)
+GN_DAMPING = 1e-6  # on the Jacobi-scaled system: conditioning only
+LM_MIN_LAMBDA = 1e-7
+LM_MAX_LAMBDA = 1e7
+
+
+@ti.func
+def to_right_perturbation(R: ti.math.mat3, H, b):
+    """H, b of the centred perturbation -> rotation-first right perturbation of the pose:
+    with D = diag(R, R), H_r = Dᵀ H D and b_r = Dᵀ b."""
+    D = ti.Matrix.zero(ti.f32, 6, 6)
+    for i in ti.static(range(3)):
+        for j in ti.static(range(3)):
+            D[i, j] = R[i, j]
+            D[i + 3, j + 3] = R[i, j]
+    return D.transpose() @ H @ D, D.transpose() @ b
+
+
+@ti.kernel
+def linearize(src_pts: ti.template(), src_cov: ti.template(), row_group: ti.template(),
+              row_map: ti.template(), row_q: ti.template(), row_t: ti.template(),
+              row_start: ti.template(), row_count: ti.template(), num_rows: ti.i32,
+              chunk: ti.i32, num_chunks: ti.i32, q_cand: ti.template(), t_cand: ti.template(),
+              status: ti.template(), vox: ti.template(), res: ti.template(), buckets: ti.i32,
+              max_probes: ti.i32, acc_H: ti.template(), acc_b: ti.template(),
+              acc_e: ti.template(), acc_n: ti.template()):
+    for r, c in ti.ndrange(num_rows, num_chunks):
+        g = row_group[r]
+        begin = c * chunk
+        if status[g] == RUNNING and begin < row_count[r]:
+            m = row_map[r]
+            quat, t = pose_compose(row_q[r], row_t[r], q_cand[g], t_cand[g])
+            R = quat_to_mat(quat)
+            inv_res = 1.0 / res[m]
+            # blocks of H_c = [[Σ hat(q)ᵀ M hat(q), −(Σ M hat(q))ᵀ], [−Σ M hat(q), Σ M]] and
+            # b_c = [Σ hat(q)ᵀ M e, −Σ M e]: 27 sums instead of 42, no multiplications by 0/1
+            S_rr = ti.math.mat3(0.0)
+            S_tr = ti.math.mat3(0.0)
+            S_tt = ti.math.mat3(0.0)
+            b_r = vec3(0.0)
+            b_t = vec3(0.0)
+            err = 0.0
+            n = 0
+            first = row_start[r] + begin
+            count = ti.min(chunk, row_count[r] - begin)
+            for block in range((count + LOOKAHEAD - 1) // LOOKAHEAD):
+                # all lookups of a block first (independent memory accesses), then the math as
+                # a branch-free loop (outliers weigh 0) that LLVM vectorizes on cpu
+                slots = ti.Vector.zero(ti.i32, LOOKAHEAD)
+                for j in range(LOOKAHEAD):
+                    kk = block * LOOKAHEAD + j
+                    slot = -1
+                    if kk < count:
+                        p = R @ src_pts[first + kk] + t
+                        slot = lookup(vox, ti.cast(ti.floor(p * inv_res), ti.i32), m, buckets,
+                                      max_probes)
+                    slots[j] = slot
+                for j in range(LOOKAHEAD):
+                    k = first + block * LOOKAHEAD + j  # the pool is padded by LOOKAHEAD
+                    hit = slots[j] >= 0
+                    s = ti.max(slots[j], 0)
+                    w = ti.select(hit, 1.0, 0.0)
+                    q = R @ src_pts[k]
+                    p = q + t
+                    C = (vox[s].cov + R @ src_cov[k] @ R.transpose()) * w \
+                        + ti.math.eye(3) * (1.0 - w)  # an outlier inverts I: stays finite
+                    M = C.inverse() * w
+                    e = vox[s].mean - p
+                    Me = M @ e
+                    hat_q = ti.math.mat3([[0.0, -q[2], q[1]], [q[2], 0.0, -q[0]],
+                                          [-q[1], q[0], 0.0]])
+                    MA = M @ hat_q
+                    S_rr += hat_q.transpose() @ MA
+                    S_tr += MA
+                    S_tt += M
+                    b_r += Me.cross(q)  # hat(q)ᵀ M e
+                    b_t += Me
+                    err += 0.5 * e.dot(Me)
+                    n += ti.select(hit, 1, 0)
+            if n > 0:
+                H = ti.Matrix.zero(ti.f32, 6, 6)
+                b = ti.Vector.zero(ti.f32, 6)
+                for i in ti.static(range(3)):
+                    b[i] = b_r[i]
+                    b[i + 3] = -b_t[i]
+                    for j in ti.static(range(3)):
+                        H[i, j] = S_rr[i, j]
+                        H[i, j + 3] = -S_tr[j, i]
+                        H[i + 3, j] = -S_tr[i, j]
+                        H[i + 3, j + 3] = S_tt[i, j]
+                H_r, b_r6 = to_right_perturbation(R, H, b)
+                acc_H[g] += H_r
+                acc_b[g] += b_r6
+                acc_e[g] += err
+                acc_n[g] += n
+
+
+@ti.func
+def chol_solve6(A, g):
+    """x with A x = g for a symmetric positive definite 6x6 A (fully unrolled Cholesky)."""
+    L = ti.Matrix.zero(ti.f32, 6, 6)
+    for j in ti.static(range(6)):
+        s = A[j, j]
+        for k in ti.static(range(j)):
+            s -= L[j, k] * L[j, k]
+        d = ti.sqrt(ti.max(s, 1e-12))
+        L[j, j] = d
+        for i in ti.static(range(j + 1, 6)):
+            s2 = A[i, j]
+            for k in ti.static(range(j)):
+                s2 -= L[i, k] * L[j, k]
+            L[i, j] = s2 / d
+    y = ti.Vector.zero(ti.f32, 6)
+    for i in ti.static(range(6)):
+        s = g[i]
+        for k in ti.static(range(i)):
+            s -= L[i, k] * y[k]
+        y[i] = s / L[i, i]
+    x = ti.Vector.zero(ti.f32, 6)
+    for ii in ti.static(range(6)):
+        i = ti.static(5 - ii)
+        s = y[i]
+        for k in ti.static(range(i + 1, 6)):
+            s -= L[k, i] * x[k]
+        x[i] = s / L[i, i]
+    return x
+
+
+@ti.func
+def damped_step(H, b, lam: ti.f32):
+    """δ = −(H + λ diag(H))⁻¹ b, solved on the Jacobi-scaled system so f32 copes with the
+    rotation/translation scale gap (Marquardt's diagonal damping)."""
+    d = ti.Vector.zero(ti.f32, 6)
+    for i in ti.static(range(6)):
+        d[i] = 1.0 / ti.sqrt(ti.max(H[i, i], 1e-20))
+    A = ti.Matrix.zero(ti.f32, 6, 6)
+    g = ti.Vector.zero(ti.f32, 6)
+    for i in ti.static(range(6)):
+        g[i] = -d[i] * b[i]
+        for j in ti.static(range(6)):
+            A[i, j] = d[i] * H[i, j] * d[j]
+        A[i, i] += lam
+    y = chol_solve6(A, g)
+    return d * y
+
+
+@ti.kernel
+def step(num_groups: ti.i32, use_lm: ti.i32, rot_eps: ti.f32, trans_eps: ti.f32,
+         q_cur: ti.template(), t_cur: ti.template(), q_cand: ti.template(),
+         t_cand: ti.template(), lam: ti.template(), status: ti.template(),
+         iters: ti.template(), acc_H: ti.template(), acc_b: ti.template(),
+         acc_e: ti.template(), acc_n: ti.template(), best_H: ti.template(),
+         best_b: ti.template(), best_e: ti.template(), best_n: ti.template()) -> ti.i32:
+    """Accept or reject each running group's candidate, then propose the next one.
+
+    The first linearization (iters == 0) is always accepted; Gauss-Newton accepts every
+    candidate; LM accepts one whose error does not grow (λ /= 10), else retries with λ *= 10.
+    Returns the number of groups still running."""
+    running = 0
+    for g in range(num_groups):
+        if status[g] == RUNNING:
+            n = acc_n[g]
+            accept = n > 0 and (iters[g] == 0 or use_lm == 0 or acc_e[g] <= best_e[g])
+            if accept:
+                q_cur[g] = q_cand[g]
+                t_cur[g] = t_cand[g]
+                best_H[g] = acc_H[g]
+                best_b[g] = acc_b[g]
+                best_e[g] = acc_e[g]
+                best_n[g] = n
+                if use_lm:
+                    lam[g] = ti.max(lam[g] * 0.1, LM_MIN_LAMBDA)
+            elif use_lm:
+                lam[g] = lam[g] * 10.0
+            iters[g] += 1
+            if best_n[g] == 0 or (not accept and use_lm == 0):
+                status[g] = NO_CORRESPONDENCES
+            elif use_lm and lam[g] > LM_MAX_LAMBDA:
+                status[g] = STALLED
+            else:
+                damping = GN_DAMPING
+                if use_lm:
+                    damping = lam[g]
+                delta = damped_step(best_H[g], best_b[g], damping)
+                w = vec3(delta[0], delta[1], delta[2])
+                v = vec3(delta[3], delta[4], delta[5])
+                if w.norm() < rot_eps and v.norm() < trans_eps:
+                    status[g] = CONVERGED
+                else:
+                    q_cand[g], t_cand[g] = pose_retract(q_cur[g], t_cur[g], w, v)
+                    running += 1
+            acc_H[g] = ti.Matrix.zero(ti.f32, 6, 6)
+            acc_b[g] = ti.Vector.zero(ti.f32, 6)
+            acc_e[g] = 0.0
+            acc_n[g] = 0
+    return running
+
+
+@ti.kernel
+def reset_groups(num_groups: ti.i32, lm_lambda: ti.f32, q_cur: ti.template(),
+                 t_cur: ti.template(), q_cand: ti.template(), t_cand: ti.template(),
+                 lam: ti.template(), status: ti.template(), iters: ti.template(),
+                 acc_H: ti.template(), acc_b: ti.template(), acc_e: ti.template(),
+                 acc_n: ti.template(), best_n: ti.template()):
+    """Start every group at its uploaded candidate pose (the first step accepts it, and
+    divides λ by 10, hence the factor)."""
+    for g in range(num_groups):
+        q_cur[g] = q_cand[g]
+        t_cur[g] = t_cand[g]
+        lam[g] = lm_lambda * 10.0
+        status[g] = RUNNING
+        iters[g] = 0
+        acc_H[g] = ti.Matrix.zero(ti.f32, 6, 6)
+        acc_b[g] = ti.Vector.zero(ti.f32, 6)
+        acc_e[g] = 0.0
+        acc_n[g] = 0
+        best_n[g] = 0

@@ -1,0 +1,216 @@
+"""Gaussian voxel maps in one open-addressing hash table made of plain fields.
+
+Lookups read one AoS struct field `vox` (key, state, mean, cov: 64 bytes, so one probe
+touches one cache line); the insertion-only sums live in separate fields.
+
+The table holds `max_maps` independent maps, each a region of `buckets` (a power of two)
+slots: slot `m * buckets + (hash(ix, iy, iz) + probe) & (buckets - 1)`. A voxel keeps the sum
+of its points' offsets from the voxel centre (so f32 sums stay precise far from the origin),
+the sum of their covariances and a count; `finalize` turns them into the voxel mean and the
+*average of the point covariances* (not the scatter of the points), as gtsam_points and
+small_gicp do. Clearing a map clears its region only.
+
+Insertion without an atomic compare-and-swap (Taichi's Python API has none) runs in rounds:
+pending points `claim` their probe slot with atomic_max of their index, the winners `commit`
+their key in a later launch, and every pending point then `resolve`s: its key is there (done),
+another key is there (probe on), all in separate launches so no kernel reads what it writes.
+"""
+
+import taichi as ti
+
+from mcl3d.kernels.se3 import quat_to_mat
+
+vec3 = ti.math.vec3
+ivec3 = ti.math.ivec3
+mat3 = ti.math.mat3
+
+EMPTY = 0
+OCCUPIED = 1
+
+Voxel = ti.types.struct(key=ivec3, state=ti.i32, mean=vec3, cov=mat3)
+
+
+@ti.func
+def voxel_coord(p: vec3, res: ti.f32) -> ivec3:
+    return ti.cast(ti.floor(p / res), ti.i32)
+
+
+@ti.func
+def voxel_hash(c: ivec3) -> ti.u32:
+    """gtsam_points' vector3i_hash (large primes, xor) in wrapping u32 arithmetic, then
+    MurmurHash3's finalizer so the low bits that pick the bucket depend on every input bit."""
+    h = (ti.cast(c[0], ti.u32) * ti.u32(73856093)) ^ (ti.cast(c[1], ti.u32) * ti.u32(19349669)) \
+        ^ (ti.cast(c[2], ti.u32) * ti.u32(83492791))
+    h ^= h >> 16
+    h *= ti.u32(0x85EBCA6B)
+    h ^= h >> 13
+    h *= ti.u32(0xC2B2AE35)
+    h ^= h >> 16
+    return h
+
+
+@ti.func
+def same_key(a: ivec3, b: ivec3) -> ti.i32:
+    return a[0] == b[0] and a[1] == b[1] and a[2] == b[2]
+
+
+@ti.func
+def probe_slot(c: ivec3, probe: ti.i32, map_id: ti.i32, buckets: ti.i32) -> ti.i32:
+    mask = ti.cast(buckets - 1, ti.u32)
+    h = (voxel_hash(c) + ti.cast(probe, ti.u32)) & mask
+    return map_id * buckets + ti.cast(h, ti.i32)
+
+
+@ti.func
+def lookup(vox: ti.template(), c: ivec3, map_id: ti.i32, buckets: ti.i32,
+           max_probes: ti.i32) -> ti.i32:
+    """Slot of voxel `c` in map `map_id`, or -1 when the voxel is not in the map."""
+    found = -1
+    for probe in range(max_probes):
+        s = probe_slot(c, probe, map_id, buckets)
+        if vox[s].state == EMPTY:
+            break
+        if same_key(vox[s].key, c):
+            found = s
+            break
+    return found
+
+
+@ti.kernel
+def clear_region(vox: ti.template(), claim: ti.template(), count: ti.template(),
+                 vsum: ti.template(), vsumcov: ti.template(), begin: ti.i32, end: ti.i32):
+    for s in range(begin, end):
+        vox[s].state = EMPTY
+        claim[s] = -1
+        count[s] = 0
+        vsum[s] = vec3(0.0)
+        vsumcov[s] = mat3(0.0)
+
+
+@ti.kernel
+def begin_insert(pts: ti.template(), covs: ti.template(), n: ti.i32, T: ti.math.mat4,
+                 res: ti.f32, coord: ti.template(), probe: ti.template(),
+                 slot: ti.template()):
+    """Transform the staged points (and covariances) into the map frame; reset probing."""
+    R = mat3([[T[0, 0], T[0, 1], T[0, 2]], [T[1, 0], T[1, 1], T[1, 2]],
+              [T[2, 0], T[2, 1], T[2, 2]]])
+    t = vec3(T[0, 3], T[1, 3], T[2, 3])
+    for i in range(n):
+        p = R @ pts[i] + t
+        pts[i] = p
+        covs[i] = R @ covs[i] @ R.transpose()
+        coord[i] = voxel_coord(p, res)
+        probe[i] = 0
+        slot[i] = -1
+
+
+@ti.kernel
+def claim_slots(coord: ti.template(), probe: ti.template(), slot: ti.template(), n: ti.i32,
+                map_id: ti.i32, buckets: ti.i32, vox: ti.template(), claim: ti.template()):
+    for i in range(n):
+        if slot[i] == -1:
+            s = probe_slot(coord[i], probe[i], map_id, buckets)
+            if vox[s].state == EMPTY:
+                ti.atomic_max(claim[s], i)
+
+
+@ti.kernel
+def commit_slots(coord: ti.template(), probe: ti.template(), slot: ti.template(), n: ti.i32,
+                 map_id: ti.i32, buckets: ti.i32, vox: ti.template(), claim: ti.template()):
+    for i in range(n):
+        if slot[i] == -1:
+            s = probe_slot(coord[i], probe[i], map_id, buckets)
+            if claim[s] == i:
+                vox[s].key = coord[i]
+                vox[s].state = OCCUPIED
+
+
+@ti.kernel
+def resolve_slots(coord: ti.template(), probe: ti.template(), slot: ti.template(), n: ti.i32,
+                  map_id: ti.i32, buckets: ti.i32, vox: ti.template(), claim: ti.template(),
+                  max_probes: ti.i32) -> ti.i32:
+    """Settle the points whose key is in their probe slot; the rest probe on. Returns how
+    many are still pending (-1 marks a point out of probes: the map is full)."""
+    pending = 0
+    for i in range(n):
+        if slot[i] == -1:
+            s = probe_slot(coord[i], probe[i], map_id, buckets)
+            if claim[s] == i:
+                claim[s] = -1
+            if vox[s].state == OCCUPIED:
+                if same_key(vox[s].key, coord[i]):
+                    slot[i] = s
+                else:
+                    probe[i] += 1
+                    if probe[i] >= max_probes:
+                        slot[i] = -2
+                    else:
+                        pending += 1
+            else:
+                pending += 1
+    return pending
+
+
+@ti.kernel
+def accumulate(pts: ti.template(), covs: ti.template(), slot: ti.template(), n: ti.i32,
+               res: ti.f32, vox: ti.template(), count: ti.template(), vsum: ti.template(),
+               vsumcov: ti.template()) -> ti.i32:
+    """Add the settled points to their voxels; returns how many points could not be placed."""
+    lost = 0
+    for i in range(n):
+        s = slot[i]
+        if s >= 0:
+            centre = (ti.cast(vox[s].key, ti.f32) + 0.5) * res
+            vsum[s] += pts[i] - centre
+            vsumcov[s] += covs[i]
+            count[s] += 1
+        else:
+            lost += 1
+    return lost
+
+
+@ti.kernel
+def finalize(vox: ti.template(), count: ti.template(), vsum: ti.template(),
+             vsumcov: ti.template(), res: ti.f32, begin: ti.i32, end: ti.i32) -> ti.i32:
+    """Mean and averaged covariance of every voxel of one map; returns its voxel count."""
+    voxels = 0
+    for s in range(begin, end):
+        if vox[s].state == OCCUPIED and count[s] > 0:
+            inv = 1.0 / ti.cast(count[s], ti.f32)
+            vox[s].mean = (ti.cast(vox[s].key, ti.f32) + 0.5) * res + vsum[s] * inv
+            vox[s].cov = vsumcov[s] * inv
+            voxels += 1
+    return voxels
+
+
+@ti.kernel
+def count_hits(pts: ti.template(), n: ti.i32, map_ids: ti.template(), map_q: ti.template(),
+               map_t: ti.template(), num_maps: ti.i32, res: ti.template(), buckets: ti.i32,
+               max_probes: ti.i32, vox: ti.template()) -> ti.i32:
+    """How many points land in an occupied voxel of at least one of the listed maps, each
+    point taken into map k's frame by (map_q[k], map_t[k]) (the overlap numerator)."""
+    hits = 0
+    for i in range(n):
+        hit = 0
+        for k in range(num_maps):
+            m = map_ids[k]
+            p = quat_to_mat(map_q[k]) @ pts[i] + map_t[k]
+            if lookup(vox, voxel_coord(p, res[m]), m, buckets, max_probes) >= 0:
+                hit = 1
+                break
+        hits += hit
+    return hits
+
+
+@ti.kernel
+def gather_voxels(vox: ti.template(), count: ti.template(), begin: ti.i32, end: ti.i32,
+                  out_mean: ti.types.ndarray(), out_cov: ti.types.ndarray(),
+                  counter: ti.template()):
+    """Copy one map's voxels (any order) into ndarrays, for export and tests."""
+    for s in range(begin, end):
+        if vox[s].state == OCCUPIED and count[s] > 0:
+            j = ti.atomic_add(counter[None], 1)
+            for a in ti.static(range(3)):
+                out_mean[j, a] = vox[s].mean[a]
+                for b in ti.static(range(3)):
+                    out_cov[j, a, b] = vox[s].cov[a, b]

@@ -1,0 +1,202 @@
+"""GICP for a batch of poses against Gaussian voxel maps, on the device.
+
+`BatchGicp` owns fixed-capacity fields (source points, rows, per-pose optimizer state) and
+drives kernels/gicp.py: one `linearize` + one `step` launch per Gauss-Newton/LM iteration for
+the whole batch. One pose (pairwise registration), a scan against several keyframe maps, and
+10,000 particles x 3 keyframes all go through the same two kernels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mcl3d.errors import ConfigError, PointCloudError
+from mcl3d.gaussian_voxels import GaussianVoxelMaps, check_points
+from mcl3d.geometry import quat_to_rot, rot_to_quat, se3
+
+STATUS_NAMES = ("running", "converged", "no correspondences", "stalled")
+
+
+@dataclass
+class BatchResult:
+    """Per pose: the optimized pose, and H, b, error, inliers at that pose (see kernels/gicp)."""
+
+    T: np.ndarray  # (G, 4, 4) T_frame_source
+    H: np.ndarray  # (G, 6, 6) Gauss-Newton Hessian, rotation first
+    b: np.ndarray  # (G, 6)
+    error: np.ndarray  # (G,) 0.5 * sum e^T M e
+    num_inliers: np.ndarray  # (G,)
+    iterations: np.ndarray  # (G,) linearizations used
+    status: np.ndarray  # (G,) 0 running (out of iterations), 1 converged, 2 lost, 3 stalled
+
+    @property
+    def converged(self) -> np.ndarray:
+        return self.status == 1
+
+
+class BatchGicp:
+    """Fields sized once: `max_groups` poses, `max_rows` (pose, map) terms, and a pool of
+    `max_source_points` source points with covariances shared by all rows."""
+
+    def __init__(self, maps: GaussianVoxelMaps, max_groups: int = 1, max_rows: int | None = None,
+                 max_source_points: int = 65536):
+        max_rows = max_groups if max_rows is None else max_rows
+        if min(max_groups, max_rows, max_source_points) < 1:
+            raise ConfigError("max_groups, max_rows and max_source_points must be >= 1")
+        import taichi as ti
+
+        self.maps = maps
+        self.max_groups, self.max_rows, self.max_source_points = max_groups, max_rows, \
+            max_source_points
+        S, R, G = max_source_points, max_rows, max_groups
+        from mcl3d.kernels.gicp import LOOKAHEAD
+
+        # padded: a block of lookups may read up to LOOKAHEAD - 1 points past a row's end
+        self.src_pts = ti.Vector.field(3, ti.f32, S + LOOKAHEAD)
+        self.src_cov = ti.Matrix.field(3, 3, ti.f32, S + LOOKAHEAD)
+        self.row_group = ti.field(ti.i32, R)
+        self.row_map = ti.field(ti.i32, R)
+        self.row_q = ti.Vector.field(4, ti.f32, R)
+        self.row_t = ti.Vector.field(3, ti.f32, R)
+        self.row_start = ti.field(ti.i32, R)
+        self.row_count = ti.field(ti.i32, R)
+        self.q_cur = ti.Vector.field(4, ti.f32, G)
+        self.t_cur = ti.Vector.field(3, ti.f32, G)
+        self.q_cand = ti.Vector.field(4, ti.f32, G)
+        self.t_cand = ti.Vector.field(3, ti.f32, G)
+        self.lam = ti.field(ti.f32, G)
+        self.status = ti.field(ti.i32, G)
+        self.iters = ti.field(ti.i32, G)
+        self.acc_H = ti.Matrix.field(6, 6, ti.f32, G)
+        self.acc_b = ti.Vector.field(6, ti.f32, G)
+        self.acc_e = ti.field(ti.f32, G)
+        self.acc_n = ti.field(ti.i32, G)
+        self.best_H = ti.Matrix.field(6, 6, ti.f32, G)
+        self.best_b = ti.Vector.field(6, ti.f32, G)
+        self.best_e = ti.field(ti.f32, G)
+        self.best_n = ti.field(ti.i32, G)
+        self.num_source = 0
+
+    def set_source(self, points: np.ndarray, covs: np.ndarray) -> None:
+        """Upload the source pool (points in the source frame, covariances (N, 3, 3))."""
+        from mcl3d.kernels import upload
+
+        pts = check_points(points, "source points")
+        covs = np.asarray(covs, dtype=np.float64)
+        if covs.shape != (len(pts), 3, 3):
+            raise PointCloudError(f"source covs must have shape ({len(pts)}, 3, 3), "
+                                  f"got {covs.shape}")
+        if len(pts) > self.max_source_points:
+            raise ConfigError(f"source has {len(pts)} points; this GICP holds at most "
+                              f"{self.max_source_points} (downsample more or raise the capacity)")
+        upload.vector_rows(np.ascontiguousarray(pts, np.float32), len(pts), self.src_pts)
+        upload.matrix_rows(np.ascontiguousarray(covs, np.float32), len(pts), self.src_cov)
+        self.num_source = len(pts)
+
+    def set_problem(self, T_init: np.ndarray, row_group: np.ndarray, row_map: np.ndarray,
+                    T_left: np.ndarray | None = None, row_start: np.ndarray | None = None,
+                    row_count: np.ndarray | None = None, lm_lambda: float = 1e-3) -> int:
+        """Upload initial poses (G, 4, 4) and rows; row r registers source points
+        [row_start, row_start + row_count) into map row_map[r] at pose T_left[r] @ T[group]."""
+        from mcl3d.kernels import upload
+
+        T_init = np.asarray(T_init, dtype=np.float64).reshape(-1, 4, 4)
+        G = len(T_init)
+        row_group = np.asarray(row_group, dtype=np.int32).ravel()
+        row_map = np.asarray(row_map, dtype=np.int32).ravel()
+        R = len(row_group)
+        if not 1 <= G <= self.max_groups or not 1 <= R <= self.max_rows:
+            raise ConfigError(f"{G} poses and {R} rows do not fit this GICP "
+                              f"(max {self.max_groups} poses, {self.max_rows} rows)")
+        if row_map.shape != (R,) or row_group.min() < 0 or row_group.max() >= G:
+            raise ConfigError("row_group must index the poses and row_map must match it")
+        if row_map.min() < 0 or row_map.max() >= self.maps.max_maps:
+            raise ConfigError(f"row_map holds a map id outside 0..{self.maps.max_maps - 1}")
+        if any(self.maps.voxel_size(int(m)) <= 0 for m in np.unique(row_map)):
+            raise ConfigError("a row refers to a map that was never filled")
+        if not np.isfinite(T_init).all():
+            raise ConfigError("initial poses contain NaN or inf")
+        T_left = np.tile(np.eye(4), (R, 1, 1)) if T_left is None else np.asarray(T_left)
+        start = np.zeros(R, np.int32) if row_start is None else np.asarray(row_start, np.int32)
+        count = (np.full(R, self.num_source, np.int32) if row_count is None
+                 else np.asarray(row_count, np.int32))
+        if (start < 0).any() or (start + count > self.num_source).any():
+            raise ConfigError(f"row point ranges exceed the {self.num_source} source points")
+        upload.scalar_rows(row_group, R, self.row_group)
+        upload.scalar_rows(row_map, R, self.row_map)
+        upload.scalar_rows(np.ascontiguousarray(start), R, self.row_start)
+        upload.scalar_rows(np.ascontiguousarray(count), R, self.row_count)
+        upload.vector_rows(rot_to_quat(T_left[:, :3, :3]).astype(np.float32), R, self.row_q)
+        upload.vector_rows(np.ascontiguousarray(T_left[:, :3, 3], np.float32), R, self.row_t)
+        upload.vector_rows(rot_to_quat(T_init[:, :3, :3]).astype(np.float32), G, self.q_cand)
+        upload.vector_rows(np.ascontiguousarray(T_init[:, :3, 3], np.float32), G, self.t_cand)
+        self.start(G, R, int(count.max()), lm_lambda)
+        return G
+
+    def start(self, num_groups: int, num_rows: int, max_row_points: int,
+              lm_lambda: float = 1e-3) -> None:
+        """Begin an optimization of the first `num_groups` poses in (q_cand, t_cand) over the
+        first `num_rows` rows. `set_problem` calls it; a caller that fills those fields on the
+        device (particles, keyframe poses) calls it directly and skips the host round trip."""
+        from mcl3d.kernels import gicp
+
+        if not (1 <= num_groups <= self.max_groups and 1 <= num_rows <= self.max_rows):
+            raise ConfigError(f"{num_groups} poses and {num_rows} rows do not fit this GICP")
+        gicp.reset_groups(num_groups, lm_lambda, self.q_cur, self.t_cur, self.q_cand,
+                          self.t_cand, self.lam, self.status, self.iters, self.acc_H,
+                          self.acc_b, self.acc_e, self.acc_n, self.best_n)
+        self._rows, self._groups, self._max_count = num_rows, num_groups, max_row_points
+
+    def default_chunk(self) -> int:
+        """Points per task: whole rows when the batch alone fills the threads (few atomics on
+        cpu), smaller chunks so that one pose still spreads over every thread or GPU lane."""
+        tasks = 256 if self.maps.runtime.backend == "cpu" else 65536
+        work = self._rows * self._max_count
+        return int(min(self._max_count, max(64, -(-work // tasks))))
+
+    def iterate(self, use_lm: bool = False, rotation_eps_rad: float = 1e-3 * np.pi / 180,
+                translation_eps_m: float = 1e-4, chunk: int | None = None) -> int:
+        """One linearization of every running pose plus one solve; returns how many run on."""
+        from mcl3d.kernels import gicp
+
+        maps = self.maps
+        if chunk is None:
+            chunk = self.default_chunk()
+        num_chunks = (self._max_count + chunk - 1) // chunk
+        gicp.linearize(self.src_pts, self.src_cov, self.row_group, self.row_map, self.row_q,
+                       self.row_t, self.row_start, self.row_count, self._rows, chunk,
+                       num_chunks, self.q_cand, self.t_cand, self.status, maps.vox, maps.res,
+                       maps.buckets, maps.max_probes, self.acc_H, self.acc_b, self.acc_e,
+                       self.acc_n)
+        return gicp.step(self._groups, int(use_lm), rotation_eps_rad, translation_eps_m,
+                         self.q_cur, self.t_cur, self.q_cand, self.t_cand, self.lam,
+                         self.status, self.iters, self.acc_H, self.acc_b, self.acc_e,
+                         self.acc_n, self.best_H, self.best_b, self.best_e, self.best_n)
+
+    def optimize(self, max_iterations: int = 20, use_lm: bool = False,
+                 rotation_eps_rad: float = 1e-3 * np.pi / 180,
+                 translation_eps_m: float = 1e-4) -> BatchResult:
+        """Iterate until every pose converged or `max_iterations` linearizations were used.
+        With max_iterations=1 this only evaluates H, b, error at the initial poses."""
+        if max_iterations < 1:
+            raise ConfigError(f"max_iterations must be >= 1, got {max_iterations}")
+        for _ in range(max_iterations):
+            if self.iterate(use_lm, rotation_eps_rad, translation_eps_m) == 0:
+                break
+        return self.result()
+
+    def result(self) -> BatchResult:
+        G = self._groups
+        q = self.q_cur.to_numpy()[:G].astype(np.float64)
+        t = self.t_cur.to_numpy()[:G].astype(np.float64)
+        return BatchResult(
+            T=se3(quat_to_rot(q), t),
+            H=self.best_H.to_numpy()[:G].astype(np.float64),
+            b=self.best_b.to_numpy()[:G].astype(np.float64),
+            error=self.best_e.to_numpy()[:G].astype(np.float64),
+            num_inliers=self.best_n.to_numpy()[:G].astype(np.int64),
+            iterations=self.iters.to_numpy()[:G].astype(np.int64),
+            status=self.status.to_numpy()[:G].astype(np.int64),
+        )

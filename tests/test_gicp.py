@@ -1,0 +1,211 @@
+"""Batched GICP kernels (kernels/gicp.py) against a float64 NumPy reference on tiny inputs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mcl3d.geometry import hat, se3, se3_exp, so3_exp, transform_points
+
+RES = 1.0
+
+
+def corner_world(rng, n_per_plane=150):
+    """Points on five planes (floor, three walls, a slanted roof): every pose direction is
+    observable. Returns points and plane-regularized covariances (normal variance 1e-3)."""
+    u = rng.uniform(0.0, 4.0, (5, n_per_plane, 2))
+    planes = [
+        np.c_[u[0], np.zeros(n_per_plane)],
+        np.c_[u[1][:, 0], np.zeros(n_per_plane), u[1][:, 1]],
+        np.c_[np.zeros(n_per_plane), u[2]],
+        np.c_[u[3][:, 0], np.full(n_per_plane, 4.0), u[3][:, 1]],
+        np.c_[u[4], 2.0 + 0.3 * u[4][:, 0]],
+    ]
+    normals = [[0, 0, 1], [0, 1, 0], [1, 0, 0], [0, 1, 0], [-0.3, 0, 1]]
+    pts, covs = [], []
+    for p, nrm in zip(planes, normals, strict=True):
+        nrm = np.asarray(nrm, float) / np.linalg.norm(nrm)
+        C = np.eye(3) - (1 - 1e-3) * np.outer(nrm, nrm)
+        pts.append(p)
+        covs.append(np.tile(C, (len(p), 1, 1)))
+    return np.vstack(pts) + 0.5, np.vstack(covs)  # planes mid-voxel, not on voxel faces
+
+
+def reference_voxels(points, covs):
+    keys = np.floor(points / RES).astype(np.int64)
+    uniq, inverse = np.unique(keys, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    n = np.bincount(inverse)
+    means = np.stack([np.bincount(inverse, points[:, a]) for a in range(3)], 1) / n[:, None]
+    avg = np.zeros((len(uniq), 3, 3))
+    np.add.at(avg, inverse, covs)
+    return {tuple(k): i for i, k in enumerate(uniq)}, means, avg / n[:, None, None]
+
+
+def reference_linearize(vox, src, src_covs, T):
+    """float64 H, b, error, inliers of the GICP cost at pose T (fixed M, one voxel each)."""
+    index, means, vcovs = vox
+    R, t = T[:3, :3], T[:3, 3]
+    H, b, err, n = np.zeros((6, 6)), np.zeros(6), 0.0, 0
+    for a, Ca in zip(src, src_covs, strict=True):
+        p = R @ a + t
+        i = index.get(tuple(np.floor(p / RES).astype(np.int64)))
+        if i is None:
+            continue
+        e = means[i] - p
+        M = np.linalg.inv(vcovs[i] + R @ Ca @ R.T)
+        J = np.hstack([R @ hat(a), -R])
+        H += J.T @ M @ J
+        b += J.T @ M @ e
+        err += 0.5 * e @ M @ e
+        n += 1
+    return H, b, err, n
+
+
+def reference_step(rows, src, src_covs, T):
+    """Float64 Gauss-Newton step of the summed rows' costs at T, rows = [(voxels, T_left)]."""
+    H, b = np.zeros((6, 6)), np.zeros(6)
+    for vox, T_left in rows:
+        Hr, br, _, _ = reference_linearize(vox, src, src_covs, T_left @ T)
+        H, b = H + Hr, b + br
+    return np.linalg.solve(H, -b)
+
+
+@pytest.fixture(scope="module")
+def problem(request):
+    from mcl3d import runtime
+    from mcl3d.batch_gicp import BatchGicp
+    from mcl3d.gaussian_voxels import GaussianVoxelMaps
+
+    runtime.init(request.config.getoption("--backend"))
+    rng = np.random.default_rng(7)
+    target, target_covs = corner_world(rng)
+    maps = GaussianVoxelMaps(max_maps=2, buckets_per_map=1 << 9, max_points=1024)
+    maps.clear(0, RES)
+    maps.insert(0, target, target_covs)
+    maps.clear(1, RES)  # the same world seen from a frame shifted by 10 m
+    T_shift = se3(so3_exp(np.array([0.0, 0.0, 0.3])), [10.0, 0.0, 0.0])
+    maps.insert(1, target, target_covs, T_shift)
+    source, source_covs = corner_world(np.random.default_rng(8), 60)
+    gicp = BatchGicp(maps, max_groups=64, max_rows=128, max_source_points=512)
+    gicp.set_source(source, source_covs)
+    vox = reference_voxels(target, target_covs)
+    R = T_shift[:3, :3]
+    vox1 = reference_voxels(transform_points(T_shift, target), R @ target_covs @ R.T)
+    return {"gicp": gicp, "vox": vox, "vox1": vox1, "src": source, "src_covs": source_covs,
+            "T_shift": T_shift}
+
+
+def test_jacobian_matches_finite_differences():
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=3)
+    T = se3(so3_exp(rng.normal(size=3)), rng.normal(size=3))
+    J = np.hstack([T[:3, :3] @ hat(a), -T[:3, :3]])  # d e / d delta of e = mu_B - T exp(d) a
+    eps = 1e-6
+    fd = np.zeros((3, 6))
+    for k in range(6):
+        d = np.zeros(6)
+        d[k] = eps
+        plus = -transform_points(T @ se3_exp(d), a[None])[0]
+        minus = -transform_points(T @ se3_exp(-d), a[None])[0]
+        fd[:, k] = (plus - minus) / (2 * eps)
+    np.testing.assert_allclose(J, fd, atol=1e-6)
+
+
+def test_gradient_b_matches_finite_differences_of_the_cost(problem):
+    T = se3(so3_exp(np.array([0.02, -0.01, 0.03])), [0.05, -0.04, 0.02])
+    _, b, _, _ = reference_linearize(problem["vox"], problem["src"], problem["src_covs"], T)
+    index, means, vcovs = problem["vox"]
+    R = T[:3, :3]
+    pairs = []  # correspondences and weights frozen at T, as the Gauss-Newton model holds them
+    for a, Ca in zip(problem["src"], problem["src_covs"], strict=True):
+        i = index.get(tuple(np.floor(transform_points(T, a[None])[0] / RES).astype(np.int64)))
+        if i is not None:
+            pairs.append((a, means[i], np.linalg.inv(vcovs[i] + R @ Ca @ R.T)))
+
+    def cost(d):
+        Td = T @ se3_exp(d)
+        return sum(0.5 * (m - transform_points(Td, a[None])[0]) @ M
+                   @ (m - transform_points(Td, a[None])[0]) for a, m, M in pairs)
+
+    eps = 1e-6
+    fd = [(cost(eps * np.eye(6)[k]) - cost(-eps * np.eye(6)[k])) / (2 * eps) for k in range(6)]
+    np.testing.assert_allclose(b, fd, rtol=1e-5, atol=1e-6)
+
+
+def test_kernel_cost_hessian_gradient_match_numpy(problem):
+    gicp = problem["gicp"]
+    rng = np.random.default_rng(4)
+    poses = [se3(so3_exp(0.05 * rng.normal(size=3)), 0.1 * rng.normal(size=3)) for _ in range(5)]
+    gicp.set_problem(np.stack(poses), row_group=np.arange(5), row_map=np.zeros(5))
+    out = gicp.optimize(max_iterations=1)  # evaluation only: H, b, error at the given poses
+    for k, T in enumerate(poses):
+        H, b, err, n = reference_linearize(problem["vox"], problem["src"], problem["src_covs"], T)
+        assert out.num_inliers[k] == n > 100
+        np.testing.assert_allclose(out.T[k], T, atol=1e-6)
+        np.testing.assert_allclose(out.error[k], err, rtol=1e-4)
+        np.testing.assert_allclose(out.b[k], b, rtol=1e-3, atol=1e-3 * np.abs(b).max())
+        np.testing.assert_allclose(out.H[k], H, rtol=1e-3, atol=1e-4 * np.abs(H).max())
+
+
+def test_one_gauss_newton_step_matches_numpy(problem):
+    gicp = problem["gicp"]
+    T0 = se3(so3_exp(np.array([0.03, 0.02, -0.04])), [0.12, -0.08, 0.05])
+    H, b, _, _ = reference_linearize(problem["vox"], problem["src"], problem["src_covs"], T0)
+    expected = T0 @ se3_exp(np.linalg.solve(H, -b))
+    gicp.set_problem(T0[None], row_group=[0], row_map=[0])
+    out = gicp.optimize(max_iterations=2, use_lm=False)  # linearize, step, accept the step
+    np.testing.assert_allclose(out.T[0][:3, 3], expected[:3, 3], atol=2e-5)
+    np.testing.assert_allclose(out.T[0][:3, :3], expected[:3, :3], atol=2e-5)
+    assert out.iterations[0] == 2
+
+
+@pytest.mark.parametrize("use_lm", [True, False])
+def test_batch_converges_and_rows_share_one_pose(problem, use_lm):
+    """32 perturbed poses: even ones against map 0, odd ones against map 1 reached through a
+    left pose; the last one has both rows. All must converge to identity."""
+    gicp = problem["gicp"]
+    rng = np.random.default_rng(5)
+    G = 33
+    T0 = np.stack([se3(so3_exp(0.05 * rng.normal(size=3)), 0.15 * rng.normal(size=3))
+                   for _ in range(G)])
+    T_left = problem["T_shift"]  # T_map1_world: rows of map 1 see the pose through it
+    groups = np.r_[np.arange(G), G - 1]
+    maps_ = np.r_[np.arange(G) % 2, 0]
+    left = np.stack([T_left if m == 1 else np.eye(4) for m in maps_])
+    gicp.set_problem(T0, row_group=groups, row_map=maps_, T_left=left)
+    out = gicp.optimize(max_iterations=30, use_lm=use_lm)
+    assert out.converged.all()
+    src, covs = problem["src"], problem["src_covs"]
+    rows0 = [(problem["vox"], np.eye(4))]
+    rows1 = [(problem["vox1"], T_left)]
+    for k, T in enumerate(out.T):
+        # Near a stationary point of the float64 cost: the residual step is limited by the f32
+        # sums and by correspondences that flip between voxels (the cost is piecewise smooth).
+        rows = rows0 + rows1 if k == G - 1 else (rows0 if k % 2 == 0 else rows1)
+        # LM stops where no damped step lowers the cost, which can be a few mm short.
+        delta = reference_step(rows, src, covs, T)
+        limit = 1e-2 if use_lm else 1e-3
+        assert np.linalg.norm(delta[:3]) < 2e-3 and np.linalg.norm(delta[3:]) < limit
+        assert np.linalg.norm(T[:3, 3]) < 0.02
+    assert out.num_inliers[-1] > 1.5 * out.num_inliers[0]  # two rows add up
+
+
+def test_no_correspondences_is_reported(problem):
+    gicp = problem["gicp"]
+    gicp.set_problem(se3(np.eye(3), [100.0, 0, 0])[None], row_group=[0], row_map=[0])
+    out = gicp.optimize(max_iterations=5)
+    assert out.status[0] == 2 and out.num_inliers[0] == 0
+
+
+def test_bad_problems_are_rejected(problem):
+    from mcl3d.errors import ConfigError
+
+    gicp = problem["gicp"]
+    with pytest.raises(ConfigError, match="row_group"):
+        gicp.set_problem(np.eye(4)[None], row_group=[1], row_map=[0])
+    with pytest.raises(ConfigError, match="map id"):
+        gicp.set_problem(np.eye(4)[None], row_group=[0], row_map=[7])
+    with pytest.raises(ConfigError, match="fit"):
+        gicp.set_problem(np.tile(np.eye(4), (65, 1, 1)), row_group=np.arange(65),
+                         row_map=np.zeros(65))
