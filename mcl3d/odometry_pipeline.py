@@ -18,7 +18,7 @@ import numpy as np
 from mcl3d import config as config_io
 from mcl3d.errors import Mcl3dError, RunInterrupted, TopicError
 from mcl3d.odometry import Odometry, OdometryConfig, OdometryFrame
-from mcl3d.outputs import atomic_open, check_writable
+from mcl3d.outputs import atomic_open, check_writable, output_folder
 from mcl3d.trajectory import Trajectory, write_kitti, write_tum
 
 OUTPUT_NAMES = {"tum": "odometry.tum", "kitti": "odometry_kitti.txt",
@@ -55,12 +55,17 @@ def _imu_extrinsic(reader, lidar_frame: str, imu_frame: str) -> tuple[np.ndarray
 
 
 def run(req: OdometryRequest, progress: bool = True) -> OdometryResult:
+    """Run odometry over the log; the output folder is removed again if nothing was written."""
+    with output_folder(req.output_dir):
+        return _run(req, progress)
+
+
+def _run(req: OdometryRequest, progress: bool) -> OdometryResult:
     from mcl3d.console import track
     from mcl3d.logs.reader import LogReader
 
     cfg = config_io.load(OdometryConfig, req.config_path, req.overrides)
     paths = {k: Path(req.output_dir) / name for k, name in OUTPUT_NAMES.items()}
-    Path(req.output_dir).mkdir(parents=True, exist_ok=True)
     for path in paths.values():
         check_writable(path, req.force)
     frames: list[OdometryFrame] = []

@@ -53,3 +53,21 @@ def atomic_open(path: Path, mode: str = "w") -> Iterator[IO]:
 def write_text_atomic(path: Path, text: str) -> None:
     with atomic_open(path, "w") as f:
         f.write(text)
+
+
+@contextlib.contextmanager
+def output_folder(path: Path) -> Iterator[Path]:
+    """Create a run's output folder; if the run fails before writing anything into it, remove
+    it again, so bad input leaves nothing behind. Work already written (e.g. the trajectory
+    kept on Ctrl-C) stays."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise OutputExistsError(f"{path} exists and is not a folder; choose another -o/--out")
+    created = not path.exists()
+    path.mkdir(parents=True, exist_ok=True)
+    try:
+        yield path
+    except BaseException:
+        if created and not any(path.iterdir()):
+            path.rmdir()
+        raise

@@ -11,6 +11,7 @@ import contextlib
 import io
 import os
 from dataclasses import dataclass
+from pathlib import Path
 
 from mcl3d.errors import BackendUnavailable, ConfigError
 
@@ -34,6 +35,9 @@ def current() -> RuntimeInfo | None:
 
 def _import_taichi():
     os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "false")
+    # Taichi aborts (a C++ assertion) without HOME, as under systemd; the account's home
+    # from the password database is what HOME would have been.
+    os.environ.setdefault("HOME", str(Path.home()))
     import taichi as ti
 
     return ti

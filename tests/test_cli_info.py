@@ -142,6 +142,10 @@ def test_log_without_pointcloud2(tmp_path):
                           "holds sensor_msgs/Imu", "not sensor_msgs/PointCloud2")
     assert_one_line_error(mcl3d("info", path, "--points-topic", "/points"), "/points",
                           "not in the log")
+    out = tmp_path / "odometry"  # a command that needs clouds stops, and writes nothing
+    assert_one_line_error(mcl3d("odometry", path, "-o", out, "--backend", "cpu"),
+                          "no point cloud", "--points-topic")
+    assert list(tmp_path.iterdir()) == [path]
 
 
 def test_two_pointcloud2_topics_need_points_topic(tmp_path):
@@ -159,6 +163,10 @@ def test_two_pointcloud2_topics_need_points_topic(tmp_path):
     result = mcl3d("info", path)
     assert result.returncode == 0
     assert "choose one with --points-topic" in result.stdout
+    out = tmp_path / "odometry"
+    assert_one_line_error(mcl3d("odometry", path, "-o", out, "--backend", "cpu"),
+                          "/front/points, /rear/points", "--points-topic")
+    assert list(tmp_path.iterdir()) == [path]
 
 
 def test_cloud_without_xyz(tmp_path):
