@@ -11,7 +11,9 @@
    into 4 pinhole depth images (90° each) and each is integrated (block lookup +
    integrate), the way a projective TSDF takes a spinning lidar. Medians over repeats
    after a warm-up; compile time excluded. The map is cleared between repeats, so every
-   repeat allocates its blocks afresh (as a scan of new ground does).
+   repeat allocates its blocks afresh (as a scan of new ground does). Besides wall time,
+   the CPU time of the process per scan (all threads) is reported: on a shared machine
+   it depends far less on what else runs than wall time does.
 2. Memory: the office map built from its mesh: allocated and free blocks, bytes per
    block (f32 while building, f32 and f16 read-only), total, against a dense grid.
 
@@ -67,23 +69,26 @@ def _median_ms(fn, repeats):
 
 
 def _ours(points_l, T, geometry, normals, mode, repeats, carve=True):
-    """ms per scan, fusing into one map that is cleared between repeats (the kernels are
-    compiled once per map, so a fresh map per repeat would time the compiler)."""
+    """ms per scan (median, min, median CPU ms), fusing into one map that is cleared between
+    repeats (the kernels are compiled once per map, so a fresh map per repeat would time
+    the compiler)."""
     from mcl3d.maps.build import BuildConfig, ScanFuser, new_map
 
     cfg = BuildConfig(normals=mode, capacity_blocks=200000, carve_free_space=carve)
     tsdf = new_map(geometry, cfg)
-    times = []
+    times, cpu = [], []
     for i in range(repeats + 1):
         tsdf.clear()
-        t0 = time.perf_counter()
+        tsdf.block_count.to_numpy()  # the clear is done
+        t0, c0 = time.perf_counter(), time.process_time()
         ScanFuser(tsdf, cfg).fuse(points_l, T, normals_l=normals)
         tsdf.block_count.to_numpy()  # wait for the device
         if i > 0:  # the first run compiles
             times.append((time.perf_counter() - t0) * 1e3)
+            cpu.append((time.process_time() - c0) * 1e3)
     n_blocks = tsdf.n_blocks
     tsdf.destroy()
-    return statistics.median(times), min(times), n_blocks
+    return statistics.median(times), min(times), n_blocks, statistics.median(cpu)
 
 
 def _depth_images(points_l, width=256):
@@ -126,22 +131,25 @@ def _open3d(points_l, T, repeats):
             attr_names=("tsdf", "weight"), attr_dtypes=(o3c.float32, o3c.float32),
             attr_channels=((1,), (1,)), voxel_size=VOXEL, block_resolution=8,
             block_count=200000)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         for image, extrinsic in prepared:
             blocks = grid.compute_unique_block_coordinates(
                 image, Kt, extrinsic, depth_scale=1.0, depth_max=100.0,
                 trunc_voxel_multiplier=4.0)
             grid.integrate(blocks, image, Kt, extrinsic, depth_scale=1.0, depth_max=100.0,
                            trunc_voxel_multiplier=4.0)
+        grid.hashmap().size()  # wait for the last integration
         state["t"] = (time.perf_counter() - t0) * 1e3
+        state["cpu"] = (time.process_time() - c0) * 1e3
         state["blocks"] = grid.hashmap().size()
 
     run()
-    times = []
+    times, cpu = [], []
     for _ in range(repeats):
         run()
         times.append(state["t"])
-    return statistics.median(times), min(times), state["blocks"], sum(
+        cpu.append(state["cpu"])
+    return statistics.median(times), min(times), state["blocks"], statistics.median(cpu), sum(
         int((d > 0).sum()) for d, _ in images)
 
 
@@ -197,21 +205,26 @@ def main() -> None:
 
     threads = os.environ.get("OMP_NUM_THREADS", str(os.cpu_count()))
     rows = [
-        ("mcl3d point-to-plane (fuse)", plane[0], plane[1], plane[2]),
-        ("mcl3d point-to-plane + normals", plane[0] + normals_ms, None, plane[2]),
-        ("mcl3d projective", proj[0], proj[1], proj[2]),
-        ("mcl3d projective, no carving (as Open3D)", band_only[0], band_only[1], band_only[2]),
-        ("Open3D VoxelBlockGrid (4 depth images)", o3d_ms[0], o3d_ms[1], o3d_ms[2]),
+        ("mcl3d point-to-plane (fuse)", plane[0], plane[1], plane[2], plane[3]),
+        ("mcl3d point-to-plane + normals", plane[0] + normals_ms, None, plane[2], None),
+        ("mcl3d projective", proj[0], proj[1], proj[2], proj[3]),
+        ("mcl3d projective, no carving (as Open3D)", band_only[0], band_only[1], band_only[2],
+         band_only[3]),
+        ("Open3D VoxelBlockGrid (4 depth images)", o3d_ms[0], o3d_ms[1], o3d_ms[2], o3d_ms[3]),
     ]
     print(f"\nTSDF fusion of one {BEAMS}x{COLUMNS} scan ({len(points)} points; Open3D gets "
-          f"{o3d_ms[3]} depth pixels), {VOXEL * 100:.0f} cm voxels, trunc 4 voxels; "
+          f"{o3d_ms[4]} depth pixels), {VOXEL * 100:.0f} cm voxels, trunc 4 voxels; "
           f"{info.backend} on {info.device}, OMP_NUM_THREADS={threads}")
-    print(f"{'method':42s} {'median ms':>10s} {'min ms':>8s} {'blocks':>8s} {'vs Open3D':>10s}")
-    for name, med, best, blocks in rows:
+    print(f"{'method':42s} {'median ms':>10s} {'min ms':>8s} {'blocks':>8s} {'vs Open3D':>10s} "
+          f"{'cpu ms':>8s} {'cpu vs O3D':>10s}")
+    for name, med, best, blocks, cpu_ms in rows:
         ratio = o3d_ms[0] / med
+        cpu_cols = (f"{cpu_ms:8.1f} {o3d_ms[3] / cpu_ms:9.2f}x" if cpu_ms
+                    else f"{'':8s} {'':10s}")
         print(f"{name:42s} {med:10.1f} {best if best is None else round(best, 1)!s:>8s} "
-              f"{blocks:8d} {ratio:9.2f}x")
-    print(f"(normal estimation alone: {normals_ms:.1f} ms; ratio > 1 = faster than Open3D)")
+              f"{blocks:8d} {ratio:9.2f}x {cpu_cols}")
+    print(f"(normal estimation alone: {normals_ms:.1f} ms; ratio > 1 = faster than Open3D; "
+          f"cpu ms: process CPU time per scan, all threads)")
     mb = 1 / 2**20
     print(f"\nOffice map {memory['extent_m']} m from its mesh: {memory['blocks']} blocks "
           f"allocated, {memory['free_blocks']} free, of {memory['cells']} cells")
@@ -224,12 +237,14 @@ def main() -> None:
                         "omp_threads": threads, "backend": info.backend,
                         "device": info.device},
             "scan": {"beams": BEAMS, "columns": COLUMNS, "points": len(points),
-                     "o3d_depth_pixels": o3d_ms[3]},
+                     "o3d_depth_pixels": o3d_ms[4]},
             "fusion_ms": {"point_to_plane": plane[0], "point_to_plane_min": plane[1],
                           "normals": normals_ms, "projective": proj[0],
                           "projective_min": proj[1], "projective_no_carving": band_only[0],
                           "open3d": o3d_ms[0],
                           "open3d_min": o3d_ms[1]},
+            "fusion_cpu_ms": {"point_to_plane": plane[3], "projective": proj[3],
+                              "projective_no_carving": band_only[3], "open3d": o3d_ms[3]},
             "ratio_open3d_over_ours": {"point_to_plane": o3d_ms[0] / plane[0],
                                        "point_to_plane_with_normals":
                                            o3d_ms[0] / (plane[0] + normals_ms),

@@ -21,14 +21,14 @@ touch one voxel in the same launch; `finalize_blocks` turns sums into distances 
 
 import taichi as ti
 
-from mcl3d.kernels.se3 import pose_interpolate, quat_rotate
+from mcl3d.kernels.se3 import quat_conj, quat_exp, quat_log, quat_mul, quat_normalize, quat_rotate
 
 BLOCK = 8
 UNKNOWN = -1  # never observed
 OVERFLOW = -2  # needed, but the pool was full
 FREE = -3  # observed, every voxel free (no surface within truncation)
 FREE_WEIGHT = 1.0  # the weight a query reports for a voxel of a FREE block
-MAX_FOOTPRINT_STEPS = 4  # a scan point's band patch is at most 9 x 9 half-voxel samples
+MAX_FOOTPRINT_STEPS = 4  # a scan point's band patch is at most 4 x 4 voxels (5 x 5 columns)
 
 STATE_UNKNOWN = 0
 STATE_OBSERVED = 1  # observed, near or behind a surface (d < truncation)
@@ -143,7 +143,8 @@ def allocate_block(m: ti.template(), bx: ti.i32, by: ti.i32, bz: ti.i32):
     """Give block (bx, by, bz) a pool slot; exactly one thread wins (atomic flag + counter).
 
     Readers must look at `coarse` in a later launch. Past capacity the counter still counts,
-    so the caller learns how many blocks were needed.
+    so the caller learns how many blocks were needed. A block that was FREE keeps that
+    evidence in `free_hits` here, so slots that are still zero need no init pass.
     """
     if (0 <= bx < m.coarse_dims[0] and 0 <= by < m.coarse_dims[1]
             and 0 <= bz < m.coarse_dims[2]):
@@ -155,6 +156,10 @@ def allocate_block(m: ti.template(), bx: ti.i32, by: ti.i32, bz: ti.i32):
                 if nid < m.capacity:
                     m.block_coord[nid] = ivec3(bx, by, bz)
                     m.block_free[nid] = 1 if c == FREE else 0
+                    if ti.static(m.writable):  # noqa: SIM102 (compile-time if)
+                        if c == FREE:
+                            for v in range(BLOCK * BLOCK * BLOCK):
+                                m.free_hits[nid, v >> 6, (v >> 3) & 7, v & 7] = FREE_WEIGHT
                     m.coarse[bx, by, bz] = nid
                 else:
                     m.coarse[bx, by, bz] = OVERFLOW
@@ -192,6 +197,17 @@ def init_blocks(m: ti.template(), start: ti.i32, count: ti.i32, as_sums: ti.i32)
         m.weight[b, i, j, h] = ti.cast(0.0, m.weight.dtype)
         if ti.static(m.writable):
             m.free_hits[b, i, j, h] = ti.cast(m.block_free[b], ti.f32) * FREE_WEIGHT
+
+
+@ti.kernel
+def zero_blocks(m: ti.template(), start: ti.i32, count: ti.i32):
+    """Blocks [start, start+count) back to zero, the state of never used slots."""
+    for k, i, j, h in ti.ndrange(count, BLOCK, BLOCK, BLOCK):
+        b = start + k
+        m.sdf[b, i, j, h] = ti.cast(0.0, m.sdf.dtype)
+        m.weight[b, i, j, h] = ti.cast(0.0, m.weight.dtype)
+        if ti.static(m.writable):
+            m.free_hits[b, i, j, h] = 0.0
 
 
 @ti.kernel
@@ -309,23 +325,31 @@ def accumulate(m: ti.template(), g: ivec3, d: ti.f32, w: ti.f32):
 
 
 @ti.func
-def accumulate_free(m: ti.template(), g: ivec3):
-    """Count a ray passing through voxel g in front of its band (free-space evidence)."""
-    if in_grid(m, g):
-        b = m.coarse[g[0] >> 3, g[1] >> 3, g[2] >> 3]
-        if b >= 0:
-            ti.atomic_add(m.free_hits[b, g[0] & 7, g[1] & 7, g[2] & 7], 1.0)
+def accumulate_free(m: ti.template(), b: ti.i32, g: ivec3):
+    """Count a ray passing through voxel g of block b in front of its band (free space)."""
+    ti.atomic_add(m.free_hits[b, g[0] & 7, g[1] & 7, g[2] & 7], 1.0)
 
 
 @ti.func
-def ray_setup(p_l: vec3, n_l: vec3, alpha: ti.f32, q0: vec4, t0: vec3, q1: vec4, t1: vec3,
+def scan_motion(q0: vec4, q1: vec4) -> vec3:
+    """Rotation vector from the scan's start to its end orientation (shortest way): the
+    part of slerp that is the same for every point, computed once per launch."""
+    q1s = q1
+    if q0.dot(q1) < 0.0:
+        q1s = -q1
+    return quat_log(quat_mul(quat_conj(q0), q1s))
+
+
+@ti.func
+def ray_setup(p_l: vec3, n_l: vec3, alpha: ti.f32, q0: vec4, t0: vec3, delta: vec3, t1: vec3,
               use_normals: ti.template()):
     """World point, sensor origin, ray direction, range, surface normal (facing the
     sensor; the reversed ray without normals) and the |cos| of the incidence angle.
 
     The pose is interpolated at the point's time (deskewing).
     """
-    q, t = pose_interpolate(q0, t0, q1, t1, alpha)
+    q = quat_normalize(quat_mul(q0, quat_exp(alpha * delta)))  # slerp, as pose_interpolate
+    t = t0 + alpha * (t1 - t0)
     p = quat_rotate(q, p_l) + t
     r = (p - t).norm()
     u = (p - t) / ti.max(r, 1e-9)
@@ -360,9 +384,20 @@ def tangent_basis(n: vec3):
 
 
 @ti.func
+def patch_tangents(n: vec3, k: ti.i32):
+    """The patch's tangent axes; a one-column patch (k = 0) needs none (zeros)."""
+    e1 = vec3(0.0)
+    e2 = vec3(0.0)
+    if k > 0:
+        e1, e2 = tangent_basis(n)
+    return e1, e2
+
+
+@ti.func
 def footprint_steps(m: ti.template(), r: ti.f32, spacing_rad: ti.f32) -> ti.i32:
-    """Half-width, in half-voxel steps, of the patch a point covers on its surface: half
-    the gap to the next ray (r * spacing / 2), so neighbouring rays' patches meet."""
+    """Half-width k, in half voxels, of the patch a point covers on its surface: half the
+    gap to the next ray (r * spacing / 2), so neighbouring rays' patches meet. The patch
+    is sampled by (k + 1)^2 columns along the normal, a voxel apart (see column_base)."""
     rho = 0.5 * r * spacing_rad
     return ti.min(ti.cast(rho / (0.5 * m.voxel_size_m), ti.i32), MAX_FOOTPRINT_STEPS)
 
@@ -374,24 +409,85 @@ def scan_allocate(m: ti.template(), pts: ti.types.ndarray(dtype=vec3, ndim=1),
                   q0: vec4, t0: vec3, q1: vec4, t1: vec3, min_range: ti.f32,
                   max_range: ti.f32, spacing_rad: ti.f32, behind_m: ti.f32,
                   use_normals: ti.template()):
-    """Pass 1 of a scan: allocate the blocks of every point's band patch (the samples of
-    scan_fuse's band, allocating when the block changes along a column)."""
+    """Pass 1 of a scan: allocate the blocks that hold samples of each point's band patch
+    (exactly those scan_fuse visits), testing as few samples as that takes.
+
+    The samples lie in the parallelepiped of the 8 corner samples (the 4 corner columns at
+    their first and last depth), so when the corners' blocks fill the box of blocks they
+    span, those are the blocks (the common case: a patch inside one block or across one
+    face). Otherwise column by column: a column whose two end samples lie in the same or
+    face-adjacent blocks covers just those two; only the rest walk all their samples.
+    """
+    delta = scan_motion(q0, q1)
     for i in range(n):
         if point_ok(pts[i], min_range, max_range):
-            p, _o, _u, r, nr, _c = ray_setup(pts[i], nrm[i], alpha[i], q0, t0, q1, t1,
+            p, _o, _u, r, nr, _c = ray_setup(pts[i], nrm[i], alpha[i], q0, t0, delta, t1,
                                              use_normals)
-            e1, e2 = tangent_basis(nr)
-            half = 0.5 * m.voxel_size_m
             k = footprint_steps(m, r, spacing_rad)
-            for a, b in ti.ndrange((-k, k + 1), (-k, k + 1)):
-                base = p + (a * e1 + b * e2) * half
-                last = ivec3(-(1 << 30))
-                for j in range(band_samples(m, behind_m)):
-                    s = ti.min(-behind_m + j * m.voxel_size_m, m.truncation_m)
-                    g = ti.cast(ti.floor(world_to_grid(m, base + s * nr)), ti.i32) >> 3
-                    if (g != last).any():
-                        allocate_block(m, g[0], g[1], g[2])
-                        last = g
+            e1, e2 = patch_tangents(nr, k)
+            pg = world_to_grid(m, p)  # the same sample positions as scan_fuse
+            nv = nr * (1.0 / m.voxel_size_m)
+            n_s = band_samples(m, behind_m)
+            s_first = -behind_m
+            s_last = ti.min(-behind_m + (n_s - 1) * m.voxel_size_m, m.truncation_m)
+            by_corners = False
+            if k > 0:
+                lo = ivec3(1 << 30)
+                hi = ivec3(-(1 << 30))
+                for c in ti.static(range(8)):
+                    cb = patch_block(pg, e1, e2, nv, k, k if c & 1 else 0, k if c & 2 else 0,
+                                     s_last if c & 4 else s_first)
+                    lo = ti.min(lo, cb)
+                    hi = ti.max(hi, cb)
+                span = hi - lo
+                if (span <= 1).all():
+                    mask = 0
+                    for c in ti.static(range(8)):
+                        cb = patch_block(pg, e1, e2, nv, k, k if c & 1 else 0,
+                                         k if c & 2 else 0, s_last if c & 4 else s_first) - lo
+                        mask |= 1 << (cb[0] * 4 + cb[1] * 2 + cb[2])
+                    full = 0
+                    for c in ti.static(range(8)):
+                        if c >> 2 <= span[0] and (c >> 1) & 1 <= span[1] and c & 1 <= span[2]:
+                            full |= 1 << c
+                    if mask == full:
+                        by_corners = True
+                        for c in ti.static(range(8)):
+                            if (mask >> c) & 1:
+                                allocate_block(m, lo[0] + (c >> 2), lo[1] + ((c >> 1) & 1),
+                                               lo[2] + (c & 1))
+            if not by_corners:
+                for a, b in ti.ndrange(k + 1, k + 1):
+                    first = patch_block(pg, e1, e2, nv, k, a, b, s_first)
+                    last = patch_block(pg, e1, e2, nv, k, a, b, s_last)
+                    allocate_block(m, first[0], first[1], first[2])
+                    if ti.abs(last - first).sum() == 1:
+                        allocate_block(m, last[0], last[1], last[2])
+                    elif (last != first).any():
+                        base = column_base(pg, e1, e2, k, a, b)
+                        prev = first
+                        for j in range(1, n_s):
+                            sj = ti.min(-behind_m + j * m.voxel_size_m, m.truncation_m)
+                            g = ti.cast(ti.floor(base + sj * nv), ti.i32) >> 3
+                            if (g != prev).any():
+                                allocate_block(m, g[0], g[1], g[2])
+                                prev = g
+
+
+@ti.func
+def column_base(pg: vec3, e1: vec3, e2: vec3, k: ti.i32, a: ti.i32, b: ti.i32) -> vec3:
+    """Grid position of column (a, b), 0 <= a, b <= k, of the band patch around the point
+    at grid position pg: a voxel apart along the tangents e1, e2, spanning +-k/2 voxels
+    (a voxel spacing covers the same voxels as a finer one on axis-aligned surfaces)."""
+    hk = 0.5 * k
+    return pg + (a - hk) * e1 + (b - hk) * e2
+
+
+@ti.func
+def patch_block(pg: vec3, e1: vec3, e2: vec3, nv: vec3, k: ti.i32, a: ti.i32, b: ti.i32,
+                s: ti.f32) -> ivec3:
+    """Block of the band sample at column (a, b), depth s (as scan_fuse computes it)."""
+    return ti.cast(ti.floor(column_base(pg, e1, e2, k, a, b) + s * nv), ti.i32) >> 3
 
 
 @ti.func
@@ -401,18 +497,72 @@ def band_samples(m: ti.template(), behind_m: ti.f32) -> ti.i32:
 
 
 @ti.func
-def block_exit(m: ti.template(), o: vec3, u: vec3, g: ivec3) -> ti.f32:
-    """Ray parameter where o + s u leaves the block holding voxel g."""
-    lo = vec3(m.origin_m[0], m.origin_m[1], m.origin_m[2]) + ti.cast(
-        (g >> 3) * BLOCK, ti.f32) * m.voxel_size_m
-    hi = lo + BLOCK * m.voxel_size_m
-    s = _BIG
+def carve_ray(m: ti.template(), o: vec3, u: vec3, s_free: ti.f32):
+    """Free space along o + s u, s in [0, s_free): unallocated blocks become FREE as a whole,
+    voxels of allocated blocks count a hit each, sampled a voxel apart.
+
+    Runs of unallocated blocks are walked block to block by a 3D DDA (per-axis ray
+    parameters of the next block face, no divisions or floors per block); on reaching an
+    allocated block the ray resumes just past its face.
+    """
+    vox = m.voxel_size_m
+    g0 = world_to_grid(m, o)  # the ray in voxel units: g0 + s * ug
+    ug = u * (1.0 / vox)
+    inv = vec3(0.0)  # ray parameter per voxel along each axis
+    edge = ivec3(0)  # 1: leaves a block through its upper face, 0: its lower face
+    step = ivec3(0)  # -1, 0, +1: how the block index changes along each axis
     for k in ti.static(range(3)):
         if u[k] > 1e-9:
-            s = ti.min(s, (hi[k] - o[k]) / u[k])
+            inv[k] = 1.0 / ug[k]
+            edge[k] = 1
+            step[k] = 1
         elif u[k] < -1e-9:
-            s = ti.min(s, (lo[k] - o[k]) / u[k])
-    return s
+            inv[k] = 1.0 / ug[k]
+            step[k] = -1
+    last = ivec3(-(1 << 30))
+    s = 0.0
+    while s < s_free:
+        g = ti.cast(ti.floor(g0 + s * ug), ti.i32)
+        if not in_grid(m, g):
+            s += BLOCK * vox
+        else:
+            bc = g >> 3
+            b = m.coarse[bc[0], bc[1], bc[2]]
+            if b >= 0:
+                if (g != last).any():
+                    accumulate_free(m, b, g)
+                    last = g
+                s += vox
+            else:
+                face = ti.cast((bc + edge) * BLOCK, ti.f32)
+                t = vec3(_BIG)  # ray parameter of the block's exit face along each axis
+                for k in ti.static(range(3)):
+                    if step[k] != 0:
+                        t[k] = (face[k] - g0[k]) * inv[k]
+                while True:
+                    if b == UNKNOWN:
+                        m.coarse[bc[0], bc[1], bc[2]] = FREE
+                    axis = 0
+                    s_exit = t[0]
+                    if t[1] < s_exit:
+                        axis = 1
+                        s_exit = t[1]
+                    if t[2] < s_exit:
+                        axis = 2
+                        s_exit = t[2]
+                    s = ti.max(s_exit, s) + 1e-4
+                    if s >= s_free:
+                        break
+                    for k in ti.static(range(3)):
+                        if axis == k:
+                            bc[k] += step[k]
+                            t[k] += BLOCK * ti.abs(inv[k])
+                    if not (0 <= bc[0] < m.coarse_dims[0] and 0 <= bc[1] < m.coarse_dims[1]
+                            and 0 <= bc[2] < m.coarse_dims[2]):
+                        break
+                    b = m.coarse[bc[0], bc[1], bc[2]]
+                    if b >= 0:
+                        break
 
 
 @ti.kernel
@@ -436,46 +586,43 @@ def scan_fuse(m: ti.template(), pts: ti.types.ndarray(dtype=vec3, ndim=1),
     them only for voxels no band reached (a ray passing a voxel says it is free, not how
     far the surface is).
     """
+    delta = scan_motion(q0, q1)
     for i in range(n):
         if point_ok(pts[i], min_range, max_range):
-            p, o, u, r, nr, c = ray_setup(pts[i], nrm[i], alpha[i], q0, t0, q1, t1,
+            p, o, u, r, nr, c = ray_setup(pts[i], nrm[i], alpha[i], q0, t0, delta, t1,
                                           use_normals)
             trunc = m.truncation_m
-            half = 0.5 * m.voxel_size_m
             if ti.static(carve):
-                s_free = r - trunc / c
-                last = ivec3(-(1 << 30))
-                s = 0.0
-                while s < s_free:
-                    g = ti.cast(ti.floor(world_to_grid(m, o + s * u)), ti.i32)
-                    if not in_grid(m, g):
-                        s += BLOCK * m.voxel_size_m
-                    else:
-                        b = m.coarse[g[0] >> 3, g[1] >> 3, g[2] >> 3]
-                        if b >= 0:
-                            if (g != last).any():
-                                accumulate_free(m, g)
-                                last = g
-                            s += m.voxel_size_m
-                        else:
-                            if b == UNKNOWN:
-                                m.coarse[g[0] >> 3, g[1] >> 3, g[2] >> 3] = FREE
-                            s = ti.max(block_exit(m, o, u, g), s) + 1e-4
-            e1, e2 = tangent_basis(nr)
+                carve_ray(m, o, u, r - trunc / c)
             k = footprint_steps(m, r, spacing_rad)
+            e1, e2 = patch_tangents(nr, k)
             k_w = -0.5 / (sigma_weight_m * sigma_weight_m)
-            for a, b in ti.ndrange((-k, k + 1), (-k, k + 1)):
-                base = p + (a * e1 + b * e2) * half
+            # the patch in voxel units: sample (a, b, j) is at column_base(a, b) + s_j nv
+            pg = world_to_grid(m, p)
+            nv = nr * (1.0 / m.voxel_size_m)
+            for a, b in ti.ndrange(k + 1, k + 1):
+                base = column_base(pg, e1, e2, k, a, b)
                 last = ivec3(-(1 << 30))
                 for j in range(band_samples(m, behind_m)):
                     s = ti.min(-behind_m + j * m.voxel_size_m, trunc)
-                    g = ti.cast(ti.floor(world_to_grid(m, base + s * nr)), ti.i32)
+                    g = ti.cast(ti.floor(base + s * nv), ti.i32)
                     if (g != last).any():
                         last = g
-                        v = voxel_center(m, g) - p
-                        d = v.dot(nr)
-                        if -behind_m <= d <= trunc:
-                            accumulate(m, g, d, ti.exp(k_w * v.dot(v)))
+                        # a point updates a voxel once (duplicates come from the adjacent
+                        # columns): skip it when column a-1 or b-1 put its sample at this
+                        # depth into it
+                        seen = False
+                        if a > 0:
+                            seen = (ti.cast(ti.floor(column_base(pg, e1, e2, k, a - 1, b)
+                                                     + s * nv), ti.i32) == g).all()
+                        if b > 0 and not seen:
+                            seen = (ti.cast(ti.floor(column_base(pg, e1, e2, k, a, b - 1)
+                                                     + s * nv), ti.i32) == g).all()
+                        if not seen:
+                            v = voxel_center(m, g) - p
+                            d = v.dot(nr)
+                            if -behind_m <= d <= trunc:
+                                accumulate(m, g, d, ti.exp(k_w * v.dot(v)))
 
 
 # ------------------------------------------------------------ points with normals

@@ -194,14 +194,17 @@ def ray_spacing_rad(points_l: np.ndarray) -> float:
     The solid angle is that of the elevation band the scan covers (a spinning lidar's
     vertical field of view), from the 1st to the 99th percentile of its elevations.
     """
-    r = np.linalg.norm(points_l, axis=1)
+    r = np.sqrt(np.einsum("ij,ij->i", points_l, points_l))
     ok = r > 0
-    if ok.sum() < 2:
+    n_ok = int(np.count_nonzero(ok))
+    if n_ok < 2:
         return 0.0
-    elevation = np.arcsin(np.clip(points_l[ok, 2] / r[ok], -1, 1))
-    lo, hi = np.percentile(elevation, [1, 99])
-    solid_angle = 2 * np.pi * max(np.sin(hi) - np.sin(lo), 1e-3)
-    return float(np.sqrt(solid_angle / ok.sum()))
+    # sin(elevation) = z / r: percentiles of it are those of the elevations (arcsin is
+    # monotonic; only the interpolation between neighbouring samples differs)
+    sin_el = np.clip(points_l[ok, 2] / r[ok], -1, 1)
+    lo, hi = np.percentile(sin_el, [1, 99])
+    solid_angle = 2 * np.pi * max(hi - lo, 1e-3)
+    return float(np.sqrt(solid_angle / n_ok))
 
 
 # ---------------------------------------------------------------- free-space blocks

@@ -159,16 +159,21 @@ class TsdfMap:
             self.free_hits = ti.field(ti.f32)
             pool.place(self.free_hits)
         self._tree = builder.finalize()
+        self._used_slots = 0  # pool slots [used, capacity) still hold zeros (never written)
         self.clear()
 
     # ------------------------------------------------------------------ bookkeeping
     def clear(self) -> None:
-        """Every cell unknown, no block allocated."""
+        """Every cell unknown, no block allocated, every pool slot zero again."""
         from mcl3d.kernels import tsdf as k
 
         n = self.geometry.n_cells
         for start in range(0, n, CHUNK_CELLS):
             k.fill_coarse(self, start, min(CHUNK_CELLS, n - start), k.UNKNOWN)
+        used = max(self._used_slots, self.n_blocks)
+        for start in range(0, used, CHUNK_BLOCKS):
+            k.zero_blocks(self, start, min(CHUNK_BLOCKS, used - start))
+        self._used_slots = 0
         k.reset_count(self)
 
     def destroy(self) -> None:
@@ -207,12 +212,19 @@ class TsdfMap:
         return self.geometry.n_cells * 8 + blocks * self.bytes_per_block()
 
     def init_new_blocks(self, start: int, end: int) -> None:
-        """Initialize pool slots [start, end) after an allocation launch."""
+        """Initialize pool slots [start, end) after an allocation launch.
+
+        While building (sums) a never written slot already holds its initial state, zeros
+        (Taichi zero-fills fields; a FREE block's mark is set by allocate_block), so only
+        reused slots (after `clear`) need the init pass.
+        """
         from mcl3d.kernels import tsdf as k
 
         end = min(end, self.capacity)
-        for s in range(start, end, CHUNK_BLOCKS):
-            k.init_blocks(self, s, min(CHUNK_BLOCKS, end - s), int(self.as_sums))
+        stop = min(end, self._used_slots) if self.as_sums else end
+        for s in range(start, stop, CHUNK_BLOCKS):
+            k.init_blocks(self, s, min(CHUNK_BLOCKS, stop - s), int(self.as_sums))
+        self._used_slots = max(self._used_slots, end)
 
     def finalize(self) -> None:
         """Turn build-time sums into distances; the map is then ready for queries."""
