@@ -310,23 +310,92 @@ def _mesh_scene(vertices: np.ndarray, triangles: np.ndarray):
     return scene
 
 
-def mesh_signed_distance(scene, query: np.ndarray, sign: str) -> np.ndarray:
-    """Exact distance to the mesh with the sign from triangle normals or ray parity."""
-    import open3d as o3d
+class MeshDistance:
+    """Exact signed distance to a triangle mesh, with a sign that is right at edges.
 
-    out = np.empty(len(query), np.float32)
-    step = 1 << 20
-    for s in range(0, len(query), step):
-        q = np.ascontiguousarray(query[s:s + step], dtype=np.float32)
-        if sign == "parity":
-            out[s:s + len(q)] = scene.compute_signed_distance(o3d.core.Tensor(q)).numpy()
-            continue
-        res = scene.compute_closest_points(o3d.core.Tensor(q))
-        diff = q - res["points"].numpy()
-        dist = np.linalg.norm(diff, axis=1)
-        facing = np.einsum("ij,ij->i", diff, res["primitive_normals"].numpy())
-        out[s:s + len(q)] = np.where(facing >= 0, dist, -dist)
-    return out
+    The sign of a query comes from the surface normal at its closest point. When that point
+    is on an edge or a vertex (outside a room's corner, say), one adjacent triangle's normal
+    can give the wrong side; the angle-weighted pseudo-normals of Baerentzen and Aanaes
+    (2005) give the right one for any closed, consistently oriented mesh. `parity` uses
+    Open3D's ray-parity sign instead (watertight meshes, either orientation).
+    """
+
+    def __init__(self, vertices: np.ndarray, triangles: np.ndarray):
+        self.vertices = np.asarray(vertices, dtype=np.float64)
+        self.triangles = np.asarray(triangles, dtype=np.int64)
+        self.scene = _mesh_scene(self.vertices, self.triangles)
+        corners = self.vertices[self.triangles]  # (T, 3 corners, 3)
+        face_n = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+        face_n /= np.maximum(np.linalg.norm(face_n, axis=1, keepdims=True), 1e-300)
+        self.face_normals = face_n
+        vertex_n = np.zeros_like(self.vertices)
+        for k in range(3):
+            a = corners[:, (k + 1) % 3] - corners[:, k]
+            b = corners[:, (k + 2) % 3] - corners[:, k]
+            cos = np.einsum("ij,ij->i", a, b) / np.maximum(
+                np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1), 1e-300)
+            np.add.at(vertex_n, self.triangles[:, k],
+                      face_n * np.arccos(np.clip(cos, -1.0, 1.0))[:, None])
+        self.vertex_normals = vertex_n
+        edges = np.sort(np.stack([self.triangles[:, [0, 1]], self.triangles[:, [1, 2]],
+                                  self.triangles[:, [2, 0]]], axis=1), axis=2)  # (T, 3, 2)
+        keys, self._edge_of = np.unique(edges.reshape(-1, 2), axis=0, return_inverse=True)
+        self._edge_of = self._edge_of.reshape(-1, 3)  # edge k of a triangle is opposite corner k+2
+        edge_n = np.zeros((len(keys), 3))
+        np.add.at(edge_n, self._edge_of.ravel(), np.repeat(face_n, 3, axis=0))
+        self.edge_normals = edge_n
+
+    def signed_distance(self, query: np.ndarray, sign: str = "normals") -> np.ndarray:
+        import open3d as o3d
+
+        out = np.empty(len(query), np.float32)
+        step = 1 << 20
+        for s in range(0, len(query), step):
+            q = np.ascontiguousarray(query[s:s + step], dtype=np.float32)
+            if sign == "parity":
+                out[s:s + len(q)] = self.scene.compute_signed_distance(
+                    o3d.core.Tensor(q)).numpy()
+                continue
+            res = self.scene.compute_closest_points(o3d.core.Tensor(q))
+            closest = res["points"].numpy().astype(np.float64)
+            tri = res["primitive_ids"].numpy().astype(np.int64)
+            diff = q - closest
+            normal = self._pseudo_normals(closest, tri)
+            dist = np.linalg.norm(diff, axis=1)
+            out[s:s + len(q)] = np.where(np.einsum("ij,ij->i", diff, normal) >= 0, dist, -dist)
+        return out
+
+    def _pseudo_normals(self, closest: np.ndarray, tri: np.ndarray) -> np.ndarray:
+        """Face, edge or vertex pseudo-normal at each closest point (by its barycentrics)."""
+        corners = self.vertices[self.triangles[tri]]
+        bary = _barycentric(closest, corners)
+        on = bary < 1e-4  # f32 closest points: within ~1e-4 of an edge counts as on it
+        n_zero = on.sum(axis=1)
+        normal = self.face_normals[tri].copy()
+        edge = n_zero == 1  # on the edge opposite the zero barycentric corner
+        if edge.any():
+            opposite = np.argmax(on[edge], axis=1)
+            normal[edge] = self.edge_normals[self._edge_of[tri[edge], (opposite + 1) % 3]]
+        vertex = n_zero >= 2  # at the corner whose barycentric is not zero
+        if vertex.any():
+            corner = np.argmin(on[vertex], axis=1)
+            normal[vertex] = self.vertex_normals[self.triangles[tri[vertex], corner]]
+        return normal
+
+
+def _barycentric(p: np.ndarray, corners: np.ndarray) -> np.ndarray:
+    """Barycentric coordinates (N, 3) of points p in triangles `corners` (N, 3, 3)."""
+    a, b, c = corners[:, 0], corners[:, 1], corners[:, 2]
+    v0, v1, v2 = b - a, c - a, p - a
+    d00 = np.einsum("ij,ij->i", v0, v0)
+    d01 = np.einsum("ij,ij->i", v0, v1)
+    d11 = np.einsum("ij,ij->i", v1, v1)
+    d20 = np.einsum("ij,ij->i", v2, v0)
+    d21 = np.einsum("ij,ij->i", v2, v1)
+    denom = np.maximum(d00 * d11 - d01 * d01, 1e-300)
+    v = (d11 * d20 - d01 * d21) / denom
+    w = (d00 * d21 - d01 * d20) / denom
+    return np.stack([1.0 - v - w, v, w], axis=1)
 
 
 def build_from_mesh(vertices: np.ndarray, triangles: np.ndarray, config: BuildConfig
@@ -349,13 +418,13 @@ def build_from_mesh(vertices: np.ndarray, triangles: np.ndarray, config: BuildCo
     trunc = config.trunc_m
     geometry = MapGeometry.around(vertices.min(axis=0), vertices.max(axis=0),
                                   config.voxel_size_m, trunc, margin_m=trunc)
-    scene = _mesh_scene(vertices, triangles)
+    mesh = MeshDistance(vertices, triangles)
     dims = np.asarray(geometry.coarse_dims)
     cells = np.stack(np.meshgrid(*[np.arange(n) for n in dims], indexing="ij"),
                      axis=-1).reshape(-1, 3).astype(np.int32)
     origin = np.asarray(geometry.origin_m)
     centers = origin + (cells + 0.5) * geometry.block_size_m
-    sd = mesh_signed_distance(scene, centers, config.mesh_sign)
+    sd = mesh.signed_distance(centers, config.mesh_sign)
     half_diag = 0.5 * np.sqrt(3) * geometry.block_size_m
     near = np.abs(sd) < trunc + half_diag + 1e-6
     free = (sd >= trunc + half_diag) & (sd <= config.free_margin_m + half_diag)
@@ -369,8 +438,7 @@ def build_from_mesh(vertices: np.ndarray, triangles: np.ndarray, config: BuildCo
     for s in range(0, len(near_cells), per):
         c = near_cells[s:s + per]
         vox = (c[:, None, None, None, :] * BLOCK + local[None]).reshape(-1, 3)
-        d = mesh_signed_distance(scene, origin + (vox + 0.5) * config.voxel_size_m,
-                                 config.mesh_sign)
+        d = mesh.signed_distance(origin + (vox + 0.5) * config.voxel_size_m, config.mesh_sign)
         d = np.clip(d, -trunc, trunc).reshape(len(c), BLOCK, BLOCK, BLOCK)
         tsdf.write_blocks(c, d, np.ones_like(d))
     return tsdf

@@ -22,9 +22,7 @@ def scans(room):
 
 
 def _exact(scene, pts):
-    from mcl3d.maps.build import mesh_signed_distance
-
-    return mesh_signed_distance(scene, pts, "normals")
+    return scene.signed_distance(pts, "normals")
 
 
 def _voxels(tsdf):
@@ -249,3 +247,21 @@ def _at(tsdf, pts):
     out = np.zeros(len(pts), np.float32)
     query(tsdf, np.ascontiguousarray(pts, dtype=np.float32), out)
     return out
+
+
+def test_mesh_sign_is_right_beside_edges_and_corners():
+    """Nearest-face normals get the sign wrong beside edges whose faces meet at more than 90
+    degrees (a tetrahedron's); angle-weighted pseudo-normals agree with ray parity."""
+    import open3d as o3d
+
+    from mcl3d.maps.build import MeshDistance
+
+    tetra = o3d.geometry.TriangleMesh.create_tetrahedron(1.0)  # closed, normals outward
+    mesh = MeshDistance(np.asarray(tetra.vertices), np.asarray(tetra.triangles))
+    pts = np.random.default_rng(0).uniform(-1.5, 1.5, (20000, 3))
+    ours = mesh.signed_distance(pts, "normals")
+    np.testing.assert_allclose(ours, mesh.signed_distance(pts, "parity"), atol=1e-5)
+    res = mesh.scene.compute_closest_points(o3d.core.Tensor(pts.astype(np.float32)))
+    face_n = mesh.face_normals[res["primitive_ids"].numpy()]
+    face_sign = np.einsum("ij,ij->i", pts - res["points"].numpy(), face_n) >= 0
+    assert (face_sign != (ours >= 0)).sum() > 1000  # the nearest-face rule fails here

@@ -17,9 +17,7 @@ def room_map(ti_runtime):
 
 
 def _exact(scene, pts):
-    from mcl3d.maps.build import mesh_signed_distance
-
-    return mesh_signed_distance(scene, pts, "normals")
+    return scene.signed_distance(pts, "normals")
 
 
 def test_samples_lie_in_free_space_uniformly(room_map):
@@ -56,7 +54,7 @@ def test_height_band_keeps_samples_above_floors(room_map):
     tsdf, scene = room_map
     pts = sample_free_space(tsdf, 3000, np.random.default_rng(1), height_band_m=(0.3, 1.2))
     rays = np.concatenate([pts, np.tile([0.0, 0.0, -1.0], (len(pts), 1))], axis=1)
-    height = scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))["t_hit"].numpy()
+    height = scene.scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))["t_hit"].numpy()
     v = tsdf.voxel_size_m
     assert np.isfinite(height).all()
     assert (height >= 0.3 - v).all() and (height <= 1.2 + v).all()

@@ -65,9 +65,10 @@ def T_rig_cam(k: int) -> np.ndarray:
 
 
 def scene_of(vertices, triangles):
-    from mcl3d.maps.build import _mesh_scene
+    """The mesh's exact signed distance (`.signed_distance`) and ray-casting scene (`.scene`)."""
+    from mcl3d.maps.build import MeshDistance
 
-    return _mesh_scene(vertices, triangles)
+    return MeshDistance(vertices, triangles)
 
 
 def scan(scene, T_world_rig) -> tuple[np.ndarray, np.ndarray]:
@@ -82,7 +83,7 @@ def scan(scene, T_world_rig) -> tuple[np.ndarray, np.ndarray]:
         T_wc = T_world_rig @ T_rig_cam(k)
         dirs_w = dirs_c @ T_wc[:3, :3].T
         rays = np.concatenate([np.broadcast_to(T_wc[:3, 3], dirs_w.shape), dirs_w], -1)
-        t = scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))["t_hit"].numpy()
+        t = scene.scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))["t_hit"].numpy()
         depth = np.where(np.isfinite(t), t, 0).astype(np.float32)
         depths.append(depth)
         ok = depth > 0
