@@ -1,7 +1,8 @@
 """Weights and systematic (low-variance) resampling over the first `n` particles.
 
-All steps are O(N) parallel kernels that behave the same on cpu, cuda and vulkan: a max-shifted
-exp of the log-weights (nothing underflows), a blocked inclusive scan (no PrefixSumExecutor,
+All steps are O(N) parallel kernels that behave the same on cpu, cuda and vulkan, and give
+the same bits on every run (no atomic float sums): a max-shifted exp of the log-weights
+(nothing underflows) with block-ordered sums, a blocked inclusive scan (no PrefixSumExecutor,
 which is wrong on some Vulkan devices), and a range fill where particle j writes its copies
 into output slots [ceil(N*C_{j-1} - u0), ceil(N*C_j - u0)).
 """
@@ -21,15 +22,30 @@ def max_log_weight(log_w: ti.template(), n: ti.i32) -> ti.f32:
 
 @ti.kernel
 def shifted_weights(log_w: ti.template(), n: ti.i32, shift: ti.f32, w: ti.template(),
-                    sums: ti.template()):
-    """w = exp(log_w - shift); sums[0] = sum(w), sums[1] = sum(w^2)."""
+                    partial: ti.template()):
+    """w = exp(log_w - shift); partial[b] = (sum w, sum w^2) over block b, summed in a fixed
+    order (atomic float sums would differ in the last bits from run to run, and so would
+    the resampling that depends on them)."""
+    for b in range((n + SCAN_BLOCK - 1) // SCAN_BLOCK):
+        s = 0.0
+        s2 = 0.0
+        for k in range(b * SCAN_BLOCK, ti.min((b + 1) * SCAN_BLOCK, n)):
+            wk = ti.exp(log_w[k] - shift)
+            w[k] = wk
+            s += wk
+            s2 += wk * wk
+        partial[b] = ti.math.vec2(s, s2)
+
+
+@ti.kernel
+def sum_partials(partial: ti.template(), n: ti.i32, sums: ti.template()):
+    """sums = (sum w, sum w^2) from the block partials, in block order."""
     sums[0] = 0.0
     sums[1] = 0.0
-    for i in range(n):
-        wi = ti.exp(log_w[i] - shift)
-        w[i] = wi
-        sums[0] += wi
-        sums[1] += wi * wi
+    ti.loop_config(serialize=True)
+    for b in range((n + SCAN_BLOCK - 1) // SCAN_BLOCK):
+        sums[0] += partial[b][0]
+        sums[1] += partial[b][1]
 
 
 @ti.kernel

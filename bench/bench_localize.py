@@ -1,0 +1,186 @@
+"""Benchmark of one MCL update: per-stage times and sensor-model throughput vs N and M.
+
+For N particles (spread 0.3 m / 0.1 rad around the true pose, as while tracking) and M scan
+points, runs full Localizer updates (resampling forced every update so every stage counts)
+and reports the median ms of each stage plus the likelihood throughput in particle*points/s.
+The baseline, measured in the same run, is the NumPy-vectorised implementation of the same
+sensor model (mcl3d.sensor_model.scan_log_likelihood_numpy) on a subset of the particles
+(its cost is linear in N); the table shows the Taichi/NumPy ratio. Also compares the
+kernel with and without the coarse-block cache and with an f16 map.
+
+Data: a simulated office log and its 5 cm map, made with `mcl3d simulate` and
+`mcl3d build-map` into --cache-dir unless --log/--map are given.
+
+    python bench/bench_localize.py [--quick] [--backend cpu] [--json bench_localize.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def ensure_data(cache: Path, log: Path | None, map_path: Path | None) -> tuple[Path, Path]:
+    cache.mkdir(parents=True, exist_ok=True)
+    exe = [sys.executable, "-m", "mcl3d"]
+    log = log or cache / "office.mcap"
+    map_path = map_path or cache / "office.tsdf"
+    if not log.exists():
+        subprocess.run([*exe, "simulate", "office", "-o", str(log), "--duration", "5",
+                        "--seed", "1", "--export-mesh", str(cache / "office.ply")], check=True)
+    if not map_path.exists():
+        subprocess.run([*exe, "build-map", str(cache / "office.ply"), "-o", str(map_path),
+                        "--backend", "cpu"], check=True)
+    return log, map_path
+
+
+def first_scan(log: Path):
+    from mcl3d.logs.reader import LogReader
+
+    with LogReader(log) as reader:
+        scan = next(iter(reader.scans()))
+        stamps, poses = reader.ground_truth()
+    k = int(np.argmin(np.abs(stamps - scan.stamp_ns)))
+    return scan.points, poses[k]
+
+
+def kernel_seconds(loc, pts, cache_block: bool, repeats: int) -> float:
+    import taichi as ti
+
+    from mcl3d.kernels.likelihood import scan_log_likelihood
+
+    p, s = loc.particles, loc.cfg.sensor
+    buf = np.zeros((s.points, 3), np.float32)
+    buf[:len(pts)] = pts
+    loc._points.from_numpy(buf)
+    times = []
+    for _ in range(repeats + 1):
+        t0 = time.perf_counter()
+        scan_log_likelihood(loc.tsdf, p.pos, p.quat, p.n, loc._points, len(pts), loc._table,
+                            s.log_free, s.log_unknown, s.match_dist_m, s.tempering(len(pts)),
+                            p.log_w, p.match, p.ll_mean, cache_block)
+        ti.sync()
+        times.append(time.perf_counter() - t0)
+    return min(times[1:])
+
+
+def numpy_seconds_per_particle(host, loc, pts, n_sub: int) -> float:
+    from mcl3d.sensor_model import scan_log_likelihood_numpy
+
+    pos, quat, _ = loc.particles.host()
+    n_sub = min(n_sub, len(pos))
+    t0 = time.perf_counter()
+    scan_log_likelihood_numpy(host, pos[:n_sub].astype(np.float64),
+                              quat[:n_sub].astype(np.float64), pts, loc.cfg.sensor)
+    return (time.perf_counter() - t0) / n_sub
+
+
+def bench_case(tsdf, host, scan, T, n: int, m: int, repeats: int, numpy_sub: int) -> dict:
+    from mcl3d.localizer import STAGES, Localizer, LocalizerConfig
+    from mcl3d.sensor_model import reduce_scan
+
+    cfg = LocalizerConfig.model_validate({
+        "particles": n, "seed": 1,
+        "sensor": {"points": m, "voxel_m": 0.05},
+        "resample": {"ess_threshold": 1.0, "anneal_min_ess": 0.0},
+        "recovery": {"enabled": False}})
+    loc = Localizer(tsdf, cfg)
+    loc.ever_converged = True  # measure steady tracking (no annealing)
+    spread = [0.3, 0.3, 0.05, 0.02, 0.02, 0.1]
+    loc.init_pose(T, spread)
+    dT = np.eye(4)
+    dT[0, 3] = 0.05
+    stage_ms = {s: [] for s in STAGES}
+    import taichi as ti
+
+    for k in range(repeats + 1):
+        loc.init_pose(T, spread)  # the same spread every update, not a converged cloud
+        ti.sync()  # keep the re-initialization out of the motion stage's time
+        r = loc.step(scan, dT, 0.1 * k)
+        if k:
+            for s in STAGES:
+                stage_ms[s].append(r.timings_ms[s])
+    med = {s: statistics.median(v) for s, v in stage_ms.items()}
+    pts = reduce_scan(scan, cfg.sensor, np.random.default_rng(0))
+    m_used = len(pts)
+    loc.init_pose(T, spread)
+    t_plain = kernel_seconds(loc, pts, False, repeats)
+    t_cache = kernel_seconds(loc, pts, True, repeats)
+    t_np = numpy_seconds_per_particle(host, loc, pts, numpy_sub) * n
+    best = min(t_plain, t_cache)
+    out = {"N": n, "M": m, "M_used": m_used, "stage_ms": med,
+           "update_ms": sum(med.values()),
+           "likelihood_kernel_ms": {"plain": 1e3 * t_plain, "cached_block": 1e3 * t_cache},
+           "throughput_pp_per_s": n * m_used / best,
+           "numpy_ms_extrapolated": 1e3 * t_np, "numpy_subset": min(numpy_sub, n),
+           "ratio_taichi_vs_numpy": t_np / best}
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--backend", default="cpu")
+    ap.add_argument("--log", type=Path)
+    ap.add_argument("--map", type=Path)
+    ap.add_argument("--cache-dir", type=Path, default=Path("/tmp/mcl3d-bench"))
+    ap.add_argument("--quick", action="store_true", help="N in 10k, 100k; M in 256, 512")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--numpy-subset", type=int, default=5000)
+    ap.add_argument("--json", type=Path, default=Path("bench_localize.json"))
+    args = ap.parse_args()
+
+    from rich.console import Console
+    from rich.table import Table
+
+    from mcl3d import runtime
+    from mcl3d.maps.io import load_map
+    from mcl3d.sensor_model import HostMap
+
+    log, map_path = ensure_data(args.cache_dir, args.log, args.map)
+    info = runtime.init(args.backend)
+    scan, T = first_scan(log)
+    ns = [10_000, 100_000] if args.quick else [10_000, 100_000, 1_000_000]
+    ms = [256, 512] if args.quick else [256, 512, 1024]
+    results = {"backend": info.backend, "device": info.device, "log": str(log),
+               "map": str(map_path), "cases": [], "f16": []}
+    for f16 in (False, True):
+        tsdf = load_map(map_path, f16=f16)
+        host = HostMap.of(tsdf)
+        for n in ns:
+            for m in ms:
+                if f16 and (n, m) != (100_000, 256):
+                    continue
+                case = bench_case(tsdf, host, scan, T, n, m, args.repeats, args.numpy_subset)
+                case["map_f16"] = f16
+                (results["f16"] if f16 else results["cases"]).append(case)
+                print(json.dumps({k: case[k] for k in ("N", "M", "update_ms",
+                                                       "throughput_pp_per_s")}), flush=True)
+        tsdf.destroy()
+    table = Table(title=f"MCL update on {info.backend} ({info.device})")
+    for col in ("N", "M", "map", "motion", "likelihood", "weights", "estimate", "resample",
+                "update ms", "kernel ms plain/cached", "pp/s", "NumPy ms", "x NumPy"):
+        table.add_column(col, justify="right")
+    for c in results["cases"] + results["f16"]:
+        s = c["stage_ms"]
+        table.add_row(f"{c['N']:,}", f"{c['M_used']}", "f16" if c["map_f16"] else "f32",
+                      *(f"{s[k]:.1f}" for k in ("motion", "likelihood", "weights", "estimate",
+                                                "resample")),
+                      f"{c['update_ms']:.1f}",
+                      f"{c['likelihood_kernel_ms']['plain']:.1f} / "
+                      f"{c['likelihood_kernel_ms']['cached_block']:.1f}",
+                      f"{c['throughput_pp_per_s']:.2e}", f"{c['numpy_ms_extrapolated']:.0f}",
+                      f"{c['ratio_taichi_vs_numpy']:.1f}")
+    Console().print(table)
+    args.json.write_text(json.dumps(results, indent=2))
+    print(f"wrote {args.json}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,187 @@
+"""The LiDAR endpoint model's parameters, scan reduction, and a NumPy twin of the kernel.
+
+The Taichi kernel (mcl3d.kernels.likelihood) is the implementation that runs; the NumPy
+version here computes the same quantities vectorised over particles x points and serves as
+the reference in tests and the baseline in bench/bench_localize.py. docs/sensor-model.md
+explains the model and every parameter.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from pydantic import Field, model_validator
+
+from mcl3d.config import Section
+from mcl3d.geometry import quat_to_rot
+
+BLOCK = 8
+FREE = -3  # mcl3d.kernels.tsdf.FREE (kept here so the NumPy twin needs no Taichi)
+
+
+class SensorModelConfig(Section):
+    """Endpoint likelihood on the TSDF; probabilities are relative to a perfect hit (= 1)."""
+
+    sigma_m: float = Field(0.05, gt=0.0, description="std of the signed distance of a hit")
+    search_sigma_m: float = Field(
+        0.12, gt=0.0, description="sigma while searching (before the first convergence and "
+                                  "after a global re-seed): wider basins of attraction")
+    z_hit: float = Field(0.9, gt=0.0, le=1.0, description="weight of the Gaussian hit term")
+    z_rand: float = Field(0.1, gt=0.0, le=1.0, description="uniform term: floor near surfaces")
+    p_free: float = Field(0.05, gt=0.0, le=1.0,
+                          description="a point in observed free space (a penalty, < z_rand)")
+    p_unknown: float = Field(0.12, gt=0.0, le=1.0,
+                             description="a point in unknown space or outside the map (neutral: "
+                                         "about the random floor)")
+    match_dist_m: float = Field(0.10, gt=0.0,
+                                description="|d| below this counts as a surface match")
+    effective_points: float = Field(
+        16.0, gt=0.0, description="tempering: the summed log-likelihood is scaled by "
+                                  "effective_points / M, as if only this many points were "
+                                  "independent")
+    points: int = Field(256, ge=8, le=65536, description="M, scan points per update")
+    min_range_m: float = Field(1.0, ge=0.0, description="closer points are dropped (the robot)")
+    max_range_m: float = Field(60.0, gt=0.0, description="farther points are dropped")
+    voxel_m: float = Field(0.25, gt=0.0, description="voxel grid before the random subset")
+    cache_block: bool | str = Field(
+        "auto", description="kernel keeps the last coarse-cell lookup (auto: on GPUs only, "
+                            "where it saves memory reads; on cpu it measured slower)")
+
+    @model_validator(mode="after")
+    def _check(self) -> SensorModelConfig:
+        if self.max_range_m <= self.min_range_m:
+            raise ValueError("max_range_m must be larger than min_range_m")
+        return self
+
+    @property
+    def log_free(self) -> float:
+        return float(np.log(self.p_free))
+
+    @property
+    def log_unknown(self) -> float:
+        return float(np.log(self.p_unknown))
+
+    def tempering(self, n_points: int) -> float:
+        return self.effective_points / max(n_points, 1)
+
+
+TABLE_SIZE = 1024  # mcl3d.kernels.likelihood.TABLE_SIZE
+
+
+def hit_table(cfg: SensorModelConfig, truncation_m: float, sigma_m: float | None = None
+              ) -> np.ndarray:
+    """log(z_hit exp(-d^2 / 2 sigma^2) + z_rand) at the centres of TABLE_SIZE bins of d
+    over [-truncation, truncation) (sigma: cfg.sigma_m unless given)."""
+    sigma = cfg.sigma_m if sigma_m is None else sigma_m
+    d = (np.arange(TABLE_SIZE) + 0.5) * (2.0 * truncation_m / TABLE_SIZE) - truncation_m
+    return np.log(cfg.z_hit * np.exp(-0.5 * (d / sigma) ** 2) + cfg.z_rand).astype(np.float32)
+
+
+def reduce_scan(points: np.ndarray, cfg: SensorModelConfig, rng: np.random.Generator,
+                times_s: np.ndarray | None = None, twist: np.ndarray | None = None
+                ) -> np.ndarray:
+    """Range gate, one point per `voxel_m` cell (the first), a random subset of M, then
+    deskewing of the kept points to the scan stamp when per-point times and the lidar's
+    twist (rotation-first, per second, in the lidar frame) are known."""
+    pts = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+    keep = np.isfinite(pts).all(axis=1)
+    r = np.linalg.norm(np.where(keep[:, None], pts, 0.0), axis=1)
+    keep &= (r >= cfg.min_range_m) & (r <= cfg.max_range_m)
+    idx = np.flatnonzero(keep)
+    if len(idx) == 0:
+        return np.zeros((0, 3), np.float32)
+    keys = np.floor(pts[idx] / cfg.voxel_m).astype(np.int64)
+    _, first = np.unique(keys, axis=0, return_index=True)
+    idx = idx[np.sort(first)]
+    if len(idx) > cfg.points:
+        idx = idx[np.sort(rng.choice(len(idx), cfg.points, replace=False))]
+    out = pts[idx]
+    if times_s is not None and twist is not None and len(times_s) == len(pts):
+        out = deskew(out, np.asarray(times_s, dtype=np.float64)[idx], twist)
+    return np.ascontiguousarray(out, dtype=np.float32)
+
+
+def deskew(points: np.ndarray, times_s: np.ndarray, twist: np.ndarray) -> np.ndarray:
+    """Points measured at `times_s` after the stamp, moved into the lidar frame at the stamp
+    under a constant twist: p_stamp = exp(t * twist) p_t."""
+    from mcl3d.geometry import se3_exp
+
+    T = se3_exp(np.asarray(twist, dtype=np.float64)[None] * times_s[:, None])
+    return np.einsum("nij,nj->ni", T[:, :3, :3], points) + T[:, :3, 3]
+
+
+@dataclass
+class HostMap:
+    """The TSDF on the host (coarse grid of pool indices + pool), for the NumPy twin."""
+
+    coarse: np.ndarray  # (cx, cy, cz) int32
+    sdf: np.ndarray  # (nb, 8, 8, 8) float32
+    weight: np.ndarray  # (nb, 8, 8, 8) float32
+    origin_m: np.ndarray
+    voxel_size_m: float
+    truncation_m: float
+
+    @staticmethod
+    def of(tsdf) -> HostMap:
+        data = tsdf.blocks()  # rows in pool order, so coarse ids index them directly
+        return HostMap(tsdf.coarse_numpy(), data.sdf.astype(np.float32),
+                       data.weight.astype(np.float32), np.asarray(tsdf.origin_m, np.float32),
+                       tsdf.voxel_size_m, tsdf.truncation_m)
+
+    def lookup(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(d, w, block id) of the voxel containing each point of p (..., 3)."""
+        g = np.floor((p - self.origin_m) / np.float32(self.voxel_size_m)).astype(np.int64)
+        c = g >> 3
+        dims = np.asarray(self.coarse.shape)
+        inside = np.all((c >= 0) & (c < dims), axis=-1)
+        cc = np.where(inside[..., None], c, 0)
+        b = np.where(inside, self.coarse[cc[..., 0], cc[..., 1], cc[..., 2]], -1)
+        bi = np.maximum(b, 0)
+        loc = g & 7
+        d = np.where(b >= 0, self.sdf[bi, loc[..., 0], loc[..., 1], loc[..., 2]],
+                     self.truncation_m)
+        w = np.where(b >= 0, self.weight[bi, loc[..., 0], loc[..., 1], loc[..., 2]], 0.0)
+        return d, w, b
+
+
+def _observed(d, w, b, trunc: float):
+    """Voxels of allocated blocks that were observed. Never-observed voxels hold
+    d = +truncation (a map invariant), so, like the kernel, w is only needed there."""
+    return (b >= 0) & ((w > 0) | (d < np.float32(trunc) * np.float32(0.999)))
+
+
+def point_log_likelihood_numpy(d, w, b, trunc: float, cfg: SensorModelConfig,
+                               exact: bool = False) -> np.ndarray:
+    """The kernel's per-point model; `exact` evaluates the hit term instead of the table."""
+    observed = _observed(d, w, b, trunc)
+    free = (b == FREE) | (observed & (d >= np.float32(trunc) * np.float32(0.999)))
+    hit = observed & ~free
+    ll = np.full(np.shape(d), cfg.log_unknown, dtype=np.float64)
+    ll[free] = cfg.log_free
+    dh = d[hit].astype(np.float64)
+    if exact:
+        ll[hit] = np.log(cfg.z_hit * np.exp(-0.5 * (dh / cfg.sigma_m) ** 2) + cfg.z_rand)
+    else:
+        k = ((d[hit] + np.float32(trunc)) * np.float32(TABLE_SIZE * 0.5 / trunc)).astype(np.int64)
+        ll[hit] = hit_table(cfg, trunc)[np.clip(k, 0, TABLE_SIZE - 1)]
+    return ll
+
+
+def scan_log_likelihood_numpy(host: HostMap, positions: np.ndarray, quats_xyzw: np.ndarray,
+                              points: np.ndarray, cfg: SensorModelConfig, chunk: int = 1000
+                              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(tempered log-likelihood increment, match ratio, mean per-point ll) per particle."""
+    n, m = len(positions), len(points)
+    out_ll = np.empty(n)
+    out_match = np.empty(n)
+    pts = points.astype(np.float32)
+    for s in range(0, n, chunk):
+        R = quat_to_rot(quats_xyzw[s:s + chunk].astype(np.float64)).astype(np.float32)
+        p = np.einsum("nij,mj->nmi", R, pts) + positions[s:s + chunk, None, :].astype(np.float32)
+        d, w, b = host.lookup(p)
+        ll = point_log_likelihood_numpy(d, w, b, host.truncation_m, cfg)
+        out_ll[s:s + chunk] = ll.sum(axis=1)
+        out_match[s:s + chunk] = (_observed(d, w, b, host.truncation_m)
+                                  & (np.abs(d) < cfg.match_dist_m)).mean(1)
+    return out_ll * cfg.tempering(m), out_match, out_ll / max(m, 1)

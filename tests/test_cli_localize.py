@@ -1,0 +1,147 @@
+"""`mcl3d localize` end to end on a tiny ray-cast room log, plus the bad-input cases."""
+
+import json
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+localize_world = pytest.importorskip("localize_world")
+
+TIGHT = "0.05 0.05 0.02 0.01 0.01 0.02"
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    from mcl3d import runtime
+
+    runtime.init("cpu")
+    d = tmp_path_factory.mktemp("localize")
+    localize_world.write_log(d / "room.mcap", 12)
+    localize_world.write_log(d / "bare.mcap", 6, odom=False, gt=False, empty_scans=(2,))
+    localize_world.write_log(d / "empty.mcap", 3, odom=False, empty_scans=(0, 1, 2))
+    localize_world.save_room_map(d / "room.tsdf", 0.1)
+    localize_world.save_room_map(d / "far.tsdf", 0.1, offset_m=(200.0, 0.0, 0.0))
+    return d
+
+
+def invoke(*args):
+    from mcl3d.cli import app
+
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+def said(result) -> str:
+    """What the user sees: the output, or the typed error the app prints as one line."""
+    return result.output + ("" if result.exception is None else str(result.exception))
+
+
+def test_tracking_end_to_end(data, tmp_path):
+    out = tmp_path / "out"
+    r = invoke("localize", data / "room.mcap", "--map", data / "room.tsdf", "-o", out,
+               "--init", "gt", "--init-std", TIGHT, "--particles", 3000, "--seed", 3,
+               "--backend", "cpu", "--result-mcap", tmp_path / "result.mcap")
+    assert r.exit_code == 0, r.output
+    assert "Localization" in r.output and "ATE" in r.output
+    tum = np.loadtxt(out / "trajectory.tum")
+    assert tum.shape == (12, 8)
+    assert np.allclose(np.linalg.norm(tum[:, 4:], axis=1), 1.0, atol=1e-6)
+    assert np.loadtxt(out / "trajectory.kitti").shape == (12, 12)
+    rows = (out / "scans.csv").read_text().splitlines()
+    assert rows[0].startswith("stamp_s,x,y,z,qx,qy,qz,qw,var_rx") and len(rows) == 13
+    assert all(",odom," in row for row in rows[2:])
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["motion_source"] == "odom"
+    assert summary["ate_all"]["translation_rmse_m"] < 0.08
+    assert summary["final_state"] == "converged"
+    assert "localizer" in (out / "config.yaml").read_text()
+    from mcl3d.logs.reader import LogReader
+
+    with LogReader(tmp_path / "result.mcap", points_topic="/localization/scan") as reader:
+        assert reader.count("points") == 12
+    # the same command again: outputs exist, refused before any work
+    again = invoke("localize", data / "room.mcap", "--map", data / "room.tsdf", "-o", out,
+                   "--init", "gt", "--backend", "cpu")
+    assert again.exit_code == 1 and "--force" in said(again)
+
+
+def test_global_init_and_reproducible(data, tmp_path):
+    args = ("localize", data / "room.mcap", "--map", data / "room.tsdf", "--particles", 4000,
+            "--seed", 9, "--backend", "cpu", "--max-scans", 4)
+    r1 = invoke(*args, "-o", tmp_path / "a")
+    r2 = invoke(*args, "-o", tmp_path / "b")
+    assert r1.exit_code == 0 and r2.exit_code == 0, r1.output + r2.output
+    a = np.loadtxt(tmp_path / "a" / "trajectory.tum")
+    b = np.loadtxt(tmp_path / "b" / "trajectory.tum")
+    assert a.shape == (4, 8)
+    np.testing.assert_array_equal(a, b)
+
+
+def test_no_motion_source_and_empty_scan(data, tmp_path):
+    out = tmp_path / "out"
+    r = invoke("localize", data / "bare.mcap", "--map", data / "room.tsdf", "-o", out,
+               "--init", "6.1 2.8 0.8 0 0 1.5708", "--init-std", TIGHT, "--particles", 2000,
+               "--backend", "cpu")
+    assert r.exit_code == 0, r.output
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["motion_source"] == "constant_velocity"
+    assert summary["skipped_scans"] == 1 and summary["scans"] == 5
+    assert any("constant-velocity" in w for w in summary["warnings"])
+    assert "ate_all" not in summary  # no ground truth in this log
+
+
+def test_all_scans_empty_is_an_error(data, tmp_path):
+    r = invoke("localize", data / "empty.mcap", "--map", data / "room.tsdf", "-o",
+               tmp_path / "o", "--init", "gt", "--particles", 1000, "--backend", "cpu")
+    assert r.exit_code == 1
+    assert "no scan could be localized" in said(r)
+
+
+def test_map_and_log_far_apart(data, tmp_path):
+    r = invoke("localize", data / "room.mcap", "--map", data / "far.tsdf", "-o",
+               tmp_path / "o", "--init", "gt", "--particles", 1000, "--backend", "cpu")
+    assert r.exit_code == 1
+    assert "outside the map" in said(r) and "different frames" in said(r)
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (("--particles", 9_000_000), "9,000,000 particles"),
+    (("--particles", 0), "particles"),
+    (("--init", "1 2 3"), "--init"),
+    (("--init", "gt", "--init-std", "a b c d e f"), "--init-std"),
+    (("--height-band", "2 1"), "height band"),
+])
+def test_bad_parameters(data, tmp_path, args, message):
+    r = invoke("localize", data / "room.mcap", "--map", data / "room.tsdf", "-o",
+               tmp_path / "o", "--backend", "cpu", *args)
+    assert r.exit_code in (1, 2)
+    assert message in said(r)
+    assert not (tmp_path / "o" / "trajectory.tum").exists()
+
+
+def test_interrupt_keeps_the_trajectory(data, tmp_path):
+    from mcl3d.errors import RunInterrupted
+    from mcl3d.localize import LocalizeConfig, run
+
+    cfg = LocalizeConfig.model_validate({"localizer": {"particles": 1000, "init": {
+        "mode": "gt", "std": [0.05, 0.05, 0.02, 0.01, 0.01, 0.02]}}})
+
+    def stop_after_three(result, done, total):
+        if done == 3:
+            raise KeyboardInterrupt
+
+    with pytest.raises(RunInterrupted, match="after 3 scans"):
+        run(data / "room.mcap", data / "room.tsdf", tmp_path / "o", cfg, backend="cpu",
+            on_progress=stop_after_three)
+    assert np.loadtxt(tmp_path / "o" / "trajectory.tum").shape == (3, 8)
+
+
+def test_missing_inputs_leave_no_output_folder(data, tmp_path):
+    out = tmp_path / "out"
+    r = invoke("localize", tmp_path / "nope.mcap", "--map", data / "room.tsdf", "-o", out,
+               "--backend", "cpu")
+    assert r.exit_code == 1 and "no such file" in said(r)
+    r = invoke("localize", data / "room.mcap", "--map", tmp_path / "nope.tsdf", "-o", out,
+               "--backend", "cpu")
+    assert r.exit_code == 1 and "does not exist" in said(r)
+    assert not out.exists()

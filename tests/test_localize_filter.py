@@ -1,0 +1,117 @@
+"""The particle filter end to end on a small ray-cast room: tracking and global localization
+(cpu, a few seconds each), plus the same result on cpu and Vulkan."""
+
+import itertools
+
+import numpy as np
+import pytest
+
+from mcl3d import geometry
+
+localize_world = pytest.importorskip("localize_world")
+
+
+@pytest.fixture(scope="module")
+def room():
+    from mcl3d import runtime
+
+    runtime.init("cpu")
+    return localize_world.build_map(), localize_world.Scanner(seed=3)
+
+
+def errors(T_est, T_true):
+    d = float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]))
+    a = float(np.degrees(geometry.rotation_angle(T_est[:3, :3].T @ T_true[:3, :3])))
+    return d, a
+
+
+def odometry(path, rng, noise_m=0.01, noise_rad=0.005):
+    """Relative motions between consecutive poses with a little Gaussian noise."""
+    out = [None]
+    for a, b in itertools.pairwise(path):
+        xi = np.concatenate([rng.normal(0, noise_rad, 3), rng.normal(0, noise_m, 3)])
+        out.append(geometry.relative_se3(a, b) @ geometry.se3_exp(xi))
+    return out
+
+
+def test_tracking_never_diverges(room, ti_runtime):
+    from mcl3d.localizer import Localizer, LocalizerConfig
+
+    tsdf, scanner = room
+    path = localize_world.path(30)
+    loc = Localizer(tsdf, LocalizerConfig(particles=5000, seed=1))
+    T0 = path[0] @ geometry.se3_exp(np.array([0.0, 0.0, 0.05, 0.15, -0.1, 0.0]))
+    loc.init_pose(T0, [0.2, 0.2, 0.05, 0.02, 0.02, 0.1])
+    motions = odometry(path, np.random.default_rng(0))
+    errs = []
+    for k, (T, dT) in enumerate(zip(path, motions, strict=True)):
+        r = loc.step(scanner.scan(T), dT, 0.1 * k)
+        errs.append(errors(r.T_map_lidar, T))
+        assert r.n_particles == 5000 and np.isfinite(r.ess)
+    d, a = np.array(errs).T
+    assert d.max() < 0.2 and a.max() < 3.0
+    assert np.sqrt(np.mean(d[5:] ** 2)) < 0.05  # about the 5 cm voxel
+    assert r.state == "converged"
+    assert np.all(np.linalg.eigvalsh(r.covariance) > 0)
+
+
+def test_global_localization_converges(room, ti_runtime):
+    from mcl3d.localizer import Localizer, LocalizerConfig
+
+    tsdf, scanner = room
+    path = localize_world.path(30)
+    loc = Localizer(tsdf, LocalizerConfig(particles=20000, seed=2), imu_roll_pitch=(0.0, 0.0))
+    loc.init_global()
+    motions = odometry(path, np.random.default_rng(1))
+    results = [loc.step(scanner.scan(T), dT, 0.1 * k)
+               for k, (T, dT) in enumerate(zip(path, motions, strict=True))]
+    assert results[0].state == "initializing"
+    final = [errors(r.T_map_lidar, T) for r, T in zip(results[-5:], path[-5:], strict=True)]
+    assert all(d < 0.2 and a < 3.0 for d, a in final), final
+    assert results[-1].state == "converged"
+
+
+def test_kld_adapts_the_particle_count(room, ti_runtime):
+    from mcl3d.localizer import Localizer, LocalizerConfig
+
+    tsdf, scanner = room
+    path = localize_world.path(12)
+    cfg = LocalizerConfig.model_validate({
+        "particles": 8000, "seed": 5,
+        "resample": {"kld": True, "min_particles": 500, "ess_threshold": 1.0}})
+    loc = Localizer(tsdf, cfg)
+    loc.init_pose(path[0], [0.05, 0.05, 0.02, 0.01, 0.01, 0.02])
+    counts = []
+    for k, (T, dT) in enumerate(zip(path, odometry(path, np.random.default_rng(3)),
+                                    strict=True)):
+        r = loc.step(scanner.scan(T), dT, 0.1 * k)
+        counts.append(r.n_particles)
+    assert counts[0] == 8000
+    assert 500 <= min(counts[1:]) < 8000  # a compact cloud needs fewer particles
+    d, a = errors(r.T_map_lidar, path[-1])
+    assert d < 0.1 and a < 2.0
+
+
+def test_same_result_on_cpu_and_vulkan(vulkan_runtime):
+    """A fixed seed gives the same filter on both backends (tiny sizes, lavapipe).
+
+    Kept last in this file: switching the backend invalidates the module's `room` map."""
+    from mcl3d import runtime
+    from mcl3d.localizer import Localizer, LocalizerConfig
+
+    def run(backend):
+        runtime.init(backend)
+        tsdf = localize_world.build_map(voxel_size_m=0.1)
+        scanner = localize_world.Scanner(n_azimuth=90, seed=5)
+        path = localize_world.path(6)
+        loc = Localizer(tsdf, LocalizerConfig(particles=2000, seed=4))
+        loc.init_pose(path[0], [0.1, 0.1, 0.02, 0.01, 0.01, 0.05])
+        out = []
+        for k, (T, dT) in enumerate(zip(path, odometry(path, np.random.default_rng(2)),
+                                        strict=True)):
+            out.append(loc.step(scanner.scan(T), dT, 0.1 * k).T_map_lidar)
+        return np.stack(out)
+
+    vk = run("vulkan")
+    cpu = run("cpu")
+    assert np.abs(vk[:, :3, 3] - cpu[:, :3, 3]).max() < 0.02
