@@ -263,8 +263,8 @@ def simulate(
     seed: Annotated[int, typer.Option("--seed", help="Seed of the world, the path and every "
                                       "noise: same seed, same bytes.")] = 0,
     config: Annotated[Path | None, typer.Option(
-        "--config", help="YAML/TOML with sections lidar, imu, odometry, map (see the saved "
-                         "_config.yaml for every key).", show_default=False)] = None,
+        "--config", help="YAML/TOML with sections world, lidar, imu, odometry, map (the "
+                         "saved _config.yaml lists every key).", show_default=False)] = None,
     export_mesh: Annotated[Path | None, typer.Option(
         "--export-mesh", help="Also write the world's triangle mesh (.ply).",
         show_default=False)] = None,
@@ -274,13 +274,316 @@ def simulate(
     force: Annotated[bool, typer.Option("--force", help="Overwrite existing outputs.")] = False,
 ) -> None:
     """Simulate a LiDAR, IMU, odometry and ground truth in a world, as a ROS 2 MCAP log."""
-    from mcl3d.console import console
+    from mcl3d.console import console, summary_table
     from mcl3d.sim.pipeline import SimulateRequest, run, summary_rows
 
     result = run(SimulateRequest(world=world, sensor=sensor, trajectory=trajectory,
                                  duration_s=duration, seed=seed, output=output,
                                  config_path=config, export_mesh=export_mesh,
                                  export_map=export_map, force=force))
-    from mcl3d.console import summary_table
-
     console.print(summary_table("Simulation", summary_rows(result)))
+
+
+@app.command("build-map")
+def build_map(
+    source: Annotated[Path, typer.Argument(
+        help="A log (.mcap/.bag) with ground truth or --trajectory, a point-cloud map "
+             "(.pcd/.ply/.bin), a mesh (.ply/.obj/.stl/.off/.glb) or a HATSDF map (.h5).")],
+    output: Annotated[Path, typer.Option("-o", "--output", help="The map file to write "
+                                         "(.tsdf).")],
+    trajectory: Annotated[Path | None, typer.Option(
+        "--trajectory", help="TUM/KITTI poses T_map_lidar for the log's scans (default: the "
+                             "log's ground truth); for point clouds, viewpoints that orient "
+                             "the normals.", show_default=False)] = None,
+    voxel_size: Annotated[float | None, typer.Option(
+        "--voxel-size", help="Voxel edge in m [default: 0.05].", show_default=False)] = None,
+    truncation: Annotated[float | None, typer.Option(
+        "--truncation", help="Truncation distance in m [default: 4 voxels].",
+        show_default=False)] = None,
+    normals: Annotated[str | None, typer.Option(
+        "--normals", help="Scans: knn (point-to-plane distances, accurate) or none "
+                          "(projective, faster) [default: knn].", show_default=False)] = None,
+    max_range: Annotated[float | None, typer.Option(
+        "--max-range", help="Ignore scan points farther than this (m) [default: 120].",
+        show_default=False)] = None,
+    capacity_blocks: Annotated[int | None, typer.Option(
+        "--capacity-blocks", help="Most 8³ blocks the map may grow to [default: 1048576].",
+        show_default=False)] = None,
+    f16: Annotated[bool, typer.Option("--f16", help="Store distances and weights in half "
+                                      "precision (read-only localization maps).")] = False,
+    export_mesh: Annotated[Path | None, typer.Option(
+        "--export-mesh", help="Also write the zero level set as a mesh (.ply/.obj/.stl).",
+        show_default=False)] = None,
+    export_points: Annotated[Path | None, typer.Option(
+        "--export-points", help="Also write the surface voxels as points (.ply/.pcd).",
+        show_default=False)] = None,
+    points_topic: Annotated[str | None, typer.Option(
+        "--points-topic", help="Point-cloud topic of the log.", show_default=False)] = None,
+    gt_topic: Annotated[str | None, typer.Option(
+        "--gt-topic", help="Ground-truth topic of the log.", show_default=False)] = None,
+    config: Annotated[Path | None, typer.Option(
+        "--config", help="YAML/TOML with build-map parameters (keys of BuildConfig).",
+        show_default=False)] = None,
+    force: Annotated[bool, typer.Option("--force", help="Overwrite existing outputs.")] = False,
+    backend: BackendOption = None,
+) -> None:
+    """Build a TSDF map from a log with poses, a point-cloud map, a mesh or a HATSDF map."""
+    from mcl3d import config as cfg
+    from mcl3d.build_map import BuildMapPipeline, summary_rows
+    from mcl3d.console import console, summary_table
+    from mcl3d.maps.build import BuildConfig
+
+    settings = cfg.load(BuildConfig, config, {
+        "voxel_size_m": voxel_size, "truncation_m": truncation, "normals": normals,
+        "max_range_m": max_range, "max_capacity_blocks": capacity_blocks})
+    info = _init_backend(backend)
+    result = BuildMapPipeline(source, output, settings, trajectory=trajectory, f16=f16,
+                              force=force, export_mesh=export_mesh,
+                              export_points=export_points, points_topic=points_topic,
+                              gt_topic=gt_topic).run()
+    console.print(summary_table("Map built", summary_rows(result, info.backend)))
+
+
+@app.command("map-info")
+def map_info(
+    map_file: Annotated[Path, typer.Argument(help="A map file written by build-map (.tsdf).")],
+    export_mesh: Annotated[Path | None, typer.Option(
+        "--export-mesh", help="Write the zero level set as a mesh (.ply/.obj/.stl).",
+        show_default=False)] = None,
+    export_points: Annotated[Path | None, typer.Option(
+        "--export-points", help="Write the surface voxels as points (.ply/.pcd).",
+        show_default=False)] = None,
+    force: Annotated[bool, typer.Option("--force", help="Overwrite existing outputs.")] = False,
+) -> None:
+    """Print a map's header and statistics; optionally export it for viewers."""
+    import json
+
+    from mcl3d.build_map import map_rows
+    from mcl3d.console import console, summary_table
+    from mcl3d.maps import export
+    from mcl3d.maps.io import read_blocks
+    from mcl3d.maps.tsdf import block_stats
+    from mcl3d.outputs import check_writable
+
+    for path in (export_mesh, export_points):
+        if path:
+            check_writable(path, force)
+    header, geometry, data = read_blocks(map_file)
+    per_voxel = data.sdf.dtype.itemsize + data.weight.dtype.itemsize
+    stats = block_stats(geometry, data, 512 * per_voxel + 16)
+    stats["file_bytes"] = map_file.stat().st_size
+    rows = [("file", str(map_file)),
+            ("format", f"{header['format']} v{header['format_version']} (mcl3d "
+                       f"{header.get('mcl3d_version', '?')}, {header.get('created_utc', '?')})"),
+            ("frame", header["frame_id"]),
+            ("precision", header["distance_dtype"]),
+            *map_rows(header, stats),
+            ("built from", json.dumps(header.get("source", {}))),
+            ("build time", f"{header.get('build', {}).get('seconds', '?')} s")]
+    if export_mesh:
+        rows.append(("mesh", f"{export.write_mesh(export_mesh, geometry, data)} triangles -> "
+                             f"{export_mesh}"))
+    if export_points:
+        rows.append(("points", f"{export.write_points(export_points, geometry, data)} points "
+                               f"-> {export_points}"))
+    console.print(summary_table("Map", rows))
+
+
+# ------------------------------------------------------------------------ localize
+def _localize_overrides(init: str, init_std: str | None, particles: int | None,
+                        min_particles: int | None, max_particles: int | None,
+                        points: int | None, seed: int | None, height_band: str | None,
+                        motion: str | None, max_scans: int | None) -> dict:
+    from mcl3d.particle_init import parse_floats
+
+    o: dict = {"localizer.seed": seed, "localizer.sensor.points": points,
+               "motion_source.source": motion, "max_scans": max_scans}
+    if init in ("global", "gt"):
+        o["localizer.init.mode"] = init
+    else:
+        o["localizer.init.mode"] = "pose"
+        o["localizer.init.pose"] = parse_floats(init, 6, "--init (x y z roll pitch yaw)")
+    if init_std is not None:
+        o["localizer.init.std"] = parse_floats(init_std, 6, "--init-std")
+    if height_band is not None:
+        text = height_band.strip().lower()
+        o["localizer.init.height_band_m"] = (
+            None if text == "none" else "auto" if text == "auto"
+            else parse_floats(height_band, 2, "--height-band (lo hi, m)"))
+    if min_particles is not None or max_particles is not None:
+        o["localizer.resample.kld"] = True
+        o["localizer.resample.min_particles"] = min_particles
+        o["localizer.particles"] = max_particles or particles
+    else:
+        o["localizer.particles"] = particles
+    return o
+
+
+@app.command()
+def localize(
+    log: Annotated[Path, typer.Argument(help="Log with LiDAR scans (MCAP, ROS 1 bag, ROS 2 bag).")],
+    map_file: Annotated[Path, typer.Option("--map", help="TSDF map (.tsdf) from build-map.")],
+    out: Annotated[Path, typer.Option("-o", "--out", help="Output folder.")],
+    init: Annotated[str, typer.Option(
+        help='"global" (uniform over free space), "gt" (first ground-truth pose) or '
+             '"x y z roll pitch yaw" (m, rad).')] = "global",
+    init_std: Annotated[str | None, typer.Option(
+        help='Std around --init pose: "sx sy sz sroll spitch syaw" (m, rad).')] = None,
+    particles: Annotated[int | None, typer.Option(
+        help="Particles N (default 100000).")] = None,
+    min_particles: Annotated[int | None, typer.Option(
+        help="Enable KLD-sampling with at least this many particles.")] = None,
+    max_particles: Annotated[int | None, typer.Option(
+        help="Enable KLD-sampling with at most this many particles.")] = None,
+    points: Annotated[int | None, typer.Option(
+        help="Scan points M per update (default 256).")] = None,
+    height_band: Annotated[str | None, typer.Option(
+        help='Global init: lidar height above the floor "lo hi" (m); "auto" (default: the '
+             'floor in the first scan, levelled by the IMU, else "0.2 2.5"); "none": anywhere.'
+    )] = None,
+    motion: Annotated[str | None, typer.Option(
+        help="Motion source: auto, odom, imu or constant_velocity.")] = None,
+    seed: Annotated[int | None, typer.Option(help="Random seed (reproducible runs).")] = None,
+    max_scans: Annotated[int | None, typer.Option(help="Stop after this many scans.")] = None,
+    config: Annotated[Path | None, typer.Option(
+        help="YAML/TOML config (sections as in the saved config.yaml).")] = None,
+    points_topic: Annotated[str | None, typer.Option(help="Point-cloud topic.")] = None,
+    imu_topic: Annotated[str | None, typer.Option(help="IMU topic.")] = None,
+    odom_topic: Annotated[str | None, typer.Option(help="Odometry topic.")] = None,
+    gt_topic: Annotated[str | None, typer.Option(help="Ground-truth topic.")] = None,
+    result_mcap: Annotated[Path | None, typer.Option(
+        help="Also write pose, particles and aligned scan to this MCAP (Foxglove).")] = None,
+    force: Annotated[bool, typer.Option(help="Overwrite existing outputs.")] = False,
+    backend: BackendOption = None,
+) -> None:
+    """6-DoF Monte Carlo localization of a log in a TSDF map (global or tracking)."""
+    from mcl3d import config as config_mod
+    from mcl3d.console import console, make_progress, summary_table
+    from mcl3d.localize import LocalizeConfig, Topics, run
+
+    if motion is not None and motion not in ("auto", "odom", "imu", "constant_velocity"):
+        raise typer.BadParameter("--motion must be auto, odom, imu or constant_velocity")
+    overrides = _localize_overrides(init, init_std, particles, min_particles, max_particles,
+                                    points, seed, height_band, motion, max_scans)
+    cfg = config_mod.load(LocalizeConfig, config, overrides)
+    info = _init_backend(backend)
+    with make_progress() as progress:
+        task = progress.add_task("localize", total=None, status="", rate="")
+
+        def on_progress(result, done: int, total: int) -> None:
+            ms = sum(result.timings_ms.values())
+            progress.update(task, completed=done, total=total,
+                            status=f"{result.state:<12} match {result.match_ratio:.2f}",
+                            rate=f"{ms:.0f} ms/update")
+
+        result = run(log, map_file, out, cfg, topics=Topics(points_topic, imu_topic, odom_topic,
+                                                             gt_topic),
+                     force=force, result_mcap=result_mcap, backend=info.requested,
+                     on_progress=on_progress)
+    s = result.summary
+    rows = [("scans", f"{s['scans']} ({s['skipped_scans']} skipped)"),
+            ("backend", f"{s['backend']} ({s['device']})"),
+            ("particles x points", f"{s['particles']:,} x {s['points']}"),
+            ("init / motion", f"{s['init']} / {s['motion_source']}"),
+            ("converged", "never" if s["converged_at_scan"] is None else
+             f"at scan {s['converged_at_scan']} ({s['converged_after_s']:.1f} s)"),
+            ("final state", s["final_state"])]
+    for key, label in (("ate_all", "ATE all scans"),
+                       ("ate_after_convergence", "ATE after convergence")):
+        if key in s:
+            e = s[key]
+            rows.append((label, f"{e['translation_rmse_m']:.3f} m RMSE (max "
+                                f"{e['translation_max_m']:.3f}), {e['rotation_rmse_deg']:.2f} "
+                                f"deg RMSE"))
+    ms = s["ms_per_update"]
+    rows.append(("ms per update", f"{ms['total']:.1f} = " + " + ".join(
+        f"{k} {v:.1f}" for k, v in ms.items() if k != "total")))
+    rows.append(("outputs", str(out)))
+    console.print(summary_table("Localization", rows))
+    for w in s["warnings"][:5]:
+        console.print(f"[yellow]warning:[/] {w}")
+
+
+@app.command()
+def demo(
+    root: Annotated[Path, typer.Option(
+        "-o", "--output", help="Folder for the demo runs; each run gets a new timestamped "
+                               "subfolder and `latest` points at it.")] = Path("demo"),
+    seed: Annotated[int, typer.Option("--seed", help="Seed of the simulated log.")] = 0,
+    backend: BackendOption = None,
+) -> None:
+    """Run the whole chain on built-in demo data: simulate an office log, inspect it, build
+    its map."""
+    from mcl3d.console import console
+    from mcl3d.demo import DemoRequest, steps
+
+    request = DemoRequest(root=root, seed=seed, backend=backend or _Globals.backend)
+    for number, step in enumerate(steps(request), start=1):
+        console.rule(f"[bold]{number}. {step.title}")
+        console.print(f"[dim]$ {step.command}")
+        for renderable in step.output:
+            console.print(renderable)
+
+
+@app.command()
+def odometry(
+    log: Annotated[Path, typer.Argument(help="Log with LiDAR scans (MCAP, ROS 1 bag, ROS 2 bag); "
+                                        "IMU and ground truth are used when present.")],
+    out: Annotated[Path, typer.Option("-o", "--out", help="Output folder: odometry.tum, "
+                                      "odometry_kitti.txt, relative_motion.npz, "
+                                      "odometry_summary.json, odometry_config.yaml.")],
+    voxel_size: Annotated[float | None, typer.Option(
+        help="Downsampling voxel edge in m (default 0.25).")] = None,
+    map_voxel_size: Annotated[float | None, typer.Option(
+        help="Finest keyframe voxel map edge in m, a 2x level is added (default: 0.25 to "
+             "0.5 m from the first scan's median range).")] = None,
+    keyframe_overlap: Annotated[float | None, typer.Option(
+        help="New keyframe when the overlap drops below this (default 0.7).")] = None,
+    no_imu: Annotated[bool, typer.Option("--no-imu", help="Ignore the IMU: constant-velocity "
+                                         "prediction.")] = False,
+    no_deskew: Annotated[bool, typer.Option("--no-deskew", help="Do not deskew sweeps.")] = False,
+    max_scans: Annotated[int | None, typer.Option(help="Stop after this many scans.")] = None,
+    config: Annotated[Path | None, typer.Option(
+        help="YAML/TOML odometry config (keys as in the saved odometry_config.yaml).")] = None,
+    points_topic: Annotated[str | None, typer.Option(help="Point-cloud topic.")] = None,
+    imu_topic: Annotated[str | None, typer.Option(help="IMU topic.")] = None,
+    gt_topic: Annotated[str | None, typer.Option(help="Ground-truth topic.")] = None,
+    force: Annotated[bool, typer.Option(help="Overwrite existing outputs.")] = False,
+    backend: BackendOption = None,
+) -> None:
+    """LiDAR(-inertial) odometry: scan-to-model GICP against recent keyframes."""
+    from mcl3d.console import console, summary_table
+    from mcl3d.odometry_pipeline import OdometryRequest, run
+
+    info = _init_backend(backend)
+    overrides = {"voxel_size_m": voxel_size, "map_voxel_size_m": map_voxel_size,
+                 "keyframe_overlap": keyframe_overlap,
+                 "use_imu": False if no_imu else None, "deskew": False if no_deskew else None}
+    result = run(OdometryRequest(log=log, output_dir=out, config_path=config,
+                                 overrides=overrides, force=force, points_topic=points_topic,
+                                 imu_topic=imu_topic, gt_topic=gt_topic, max_scans=max_scans))
+    s = result.summary
+    ms = s["ms_per_frame"]
+    rows = [("scans", f"{s['scans']} ({s['keyframes']} keyframes)"),
+            ("backend", f"{info.backend} ({info.device})"),
+            ("path length", f"{s['path_length_m']:.2f} m"),
+            ("ms per frame", f"{ms['mean']:.1f} mean, {ms['median']:.1f} median"),
+            ("degenerate frames", str(s["degenerate_frames"]))]
+    ev = s["evaluation"]
+    if ev and "ate" in ev:
+        rows.append(("ATE (first pose aligned)",
+                     f"{ev['ate']['translation_m']['rmse']:.3f} m RMSE, "
+                     f"{ev['ate']['rotation_deg']['rmse']:.2f} deg RMSE"))
+        rows.append(("RPE per 1 m", f"{ev['rpe']['translation_m']['mean']:.3f} m, "
+                                    f"{ev['rpe']['rotation_deg']['mean']:.2f} deg"))
+        if ev["drift_percent"] is not None:
+            rows.append(("end-point drift", f"{ev['drift_percent']:.2f} % of "
+                                            f"{ev['gt_path_length_m']:.1f} m"))
+    rows.append(("outputs", str(out)))
+    console.print(summary_table("Odometry", rows))
+    for note in s["notes"]:
+        console.print(f"[yellow]note:[/] {note}")
+    for w in s["warnings"][:5]:
+        console.print(f"[yellow]warning:[/] {w}")
+    if s["num_warnings"] > 5:
+        console.print(f"[yellow]... {s['num_warnings'] - 5} more warnings in the summary[/]")
