@@ -512,8 +512,7 @@ def demo(
     seed: Annotated[int, typer.Option("--seed", help="Seed of the simulated log.")] = 0,
     backend: BackendOption = None,
 ) -> None:
-    """Run the whole chain on built-in demo data: simulate an office log, inspect it, build
-    its map."""
+    """Run the chain on built-in demo data: simulate an office log, inspect it, map it."""
     from mcl3d.console import console
     from mcl3d.demo import DemoRequest, steps
 
