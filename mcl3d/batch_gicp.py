@@ -53,9 +53,11 @@ class BatchGicp:
         S, R, G = max_source_points, max_rows, max_groups
         from mcl3d.kernels.gicp import LOOKAHEAD
 
-        # padded: a block of lookups may read up to LOOKAHEAD - 1 points past a row's end
-        self.src_pts = ti.Vector.field(3, ti.f32, S + LOOKAHEAD)
-        self.src_cov = ti.Matrix.field(3, 3, ti.f32, S + LOOKAHEAD)
+        # padded: a block of lookups may read up to LOOKAHEAD - 1 points past a row's end;
+        # structure of arrays, so that a block loads them as whole vectors; covariances as
+        # their upper triangle (xx xy xz yy yz zz)
+        self.src_pts = ti.Vector.field(3, ti.f32, S + LOOKAHEAD, layout=ti.Layout.SOA)
+        self.src_cov = ti.Vector.field(6, ti.f32, S + LOOKAHEAD, layout=ti.Layout.SOA)
         self.row_group = ti.field(ti.i32, R)
         self.row_map = ti.field(ti.i32, R)
         self.row_q = ti.Vector.field(4, ti.f32, R)
@@ -92,7 +94,9 @@ class BatchGicp:
             raise ConfigError(f"source has {len(pts)} points; this GICP holds at most "
                               f"{self.max_source_points} (downsample more or raise the capacity)")
         upload.vector_rows(np.ascontiguousarray(pts, np.float32), len(pts), self.src_pts)
-        upload.matrix_rows(np.ascontiguousarray(covs, np.float32), len(pts), self.src_cov)
+        iu, ju = np.triu_indices(3)
+        upper = 0.5 * (covs[:, iu, ju] + covs[:, ju, iu])
+        upload.vector_rows(np.ascontiguousarray(upper, np.float32), len(pts), self.src_cov)
         self.num_source = len(pts)
 
     def set_problem(self, T_init: np.ndarray, row_group: np.ndarray, row_map: np.ndarray,
@@ -132,14 +136,16 @@ class BatchGicp:
         upload.vector_rows(np.ascontiguousarray(T_left[:, :3, 3], np.float32), R, self.row_t)
         upload.vector_rows(rot_to_quat(T_init[:, :3, :3]).astype(np.float32), G, self.q_cand)
         upload.vector_rows(np.ascontiguousarray(T_init[:, :3, 3], np.float32), G, self.t_cand)
-        self.start(G, R, int(count.max()), lm_lambda)
+        self.start(G, R, int(count.max()), lm_lambda,
+                   one_row_per_group=len(np.unique(row_group)) == R)
         return G
 
     def start(self, num_groups: int, num_rows: int, max_row_points: int,
-              lm_lambda: float = 1e-3) -> None:
+              lm_lambda: float = 1e-3, one_row_per_group: bool = False) -> None:
         """Begin an optimization of the first `num_groups` poses in (q_cand, t_cand) over the
         first `num_rows` rows. `set_problem` calls it; a caller that fills those fields on the
-        device (particles, keyframe poses) calls it directly and skips the host round trip."""
+        device (particles, keyframe poses) calls it directly and skips the host round trip.
+        `one_row_per_group` (no two rows share a pose) lets whole-row tasks skip atomics."""
         from mcl3d.kernels import gicp
 
         if not (1 <= num_groups <= self.max_groups and 1 <= num_rows <= self.max_rows):
@@ -148,6 +154,7 @@ class BatchGicp:
                           self.t_cand, self.lam, self.status, self.iters, self.acc_H,
                           self.acc_b, self.acc_e, self.acc_n, self.best_n)
         self._rows, self._groups, self._max_count = num_rows, num_groups, max_row_points
+        self._one_row_per_group = one_row_per_group
 
     def default_chunk(self) -> int:
         """Points per task: whole rows when the batch alone fills the threads (few atomics on
@@ -169,7 +176,7 @@ class BatchGicp:
                        self.row_t, self.row_start, self.row_count, self._rows, chunk,
                        num_chunks, self.q_cand, self.t_cand, self.status, maps.vox, maps.res,
                        maps.buckets, maps.max_probes, self.acc_H, self.acc_b, self.acc_e,
-                       self.acc_n)
+                       self.acc_n, self._one_row_per_group and num_chunks == 1)
         return gicp.step(self._groups, int(use_lm), rotation_eps_rad, translation_eps_m,
                          self.q_cur, self.t_cur, self.q_cand, self.t_cand, self.lam,
                          self.status, self.iters, self.acc_H, self.acc_b, self.acc_e,
