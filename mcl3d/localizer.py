@@ -20,7 +20,7 @@ from mcl3d.errors import ConfigError, InputError
 from mcl3d.estimate import ClusterParams, Hypothesis, cluster_hypotheses, kld_sample_count
 from mcl3d.particle_init import FreeCells, InitConfig, free_cells
 from mcl3d.particles import ParticleSet
-from mcl3d.sensor_model import TABLE_SIZE, SensorModelConfig, hit_table, reduce_scan
+from mcl3d.sensor_model import BLOCK, SensorModelConfig, code_table, reduce_scan, spatial_order
 
 STATES = ("initializing", "converged", "ambiguous", "lost")
 STAGES = ("motion", "likelihood", "weights", "estimate", "resample", "recovery")
@@ -170,7 +170,13 @@ class Localizer:
         self._rng = np.random.default_rng(config.seed)
         import taichi as ti
 
+        from mcl3d.kernels import likelihood as kl
+
         self._points = ti.Vector.field(3, ti.f32, shape=config.sensor.points)
+        self._points_host = np.zeros((config.sensor.points, 3), np.float32)
+        self._keys = ti.field(ti.i32, shape=capacity)
+        self._order = ti.field(ti.i32, shape=capacity)
+        self._order_host = np.zeros(capacity, np.int32)
         self.cache_block = config.sensor.cache_block
         if self.cache_block == "auto":
             from mcl3d import runtime
@@ -178,8 +184,15 @@ class Localizer:
             info = runtime.current()
             self.cache_block = info is not None and info.backend != "cpu"
         self.cache_block = bool(self.cache_block)
-        self._table = ti.field(ti.f32, shape=TABLE_SIZE)
+        self._table = ti.field(ti.f32, shape=kl.N_CODES)
         self._table_sigma = None
+        # the sensor model per voxel, evaluated once (the map is read-only from here on):
+        # 1 KiB per map block, a quarter of an f32 map
+        self._codes = ti.field(ti.i32, shape=(tsdf.capacity + 2, kl.BLOCK, kl.BLOCK,
+                                              kl.WORDS_Z))
+        self._slots = ti.field(ti.i32, shape=tsdf.coarse_dims)
+        kl.build_codes(tsdf, self._codes, tsdf.n_blocks, config.sensor.match_dist_m)
+        kl.build_slots(tsdf, self._slots)
 
     # ------------------------------------------------------------------ initialization
     @property
@@ -252,7 +265,6 @@ class Localizer:
         import taichi as ti
 
         from mcl3d.kernels import motion, resample
-        from mcl3d.kernels.likelihood import scan_log_likelihood
 
         cfg = self.cfg
         p = self.particles
@@ -280,18 +292,13 @@ class Localizer:
         sigma = cfg.sensor.sigma_m if self.ever_converged else max(cfg.sensor.search_sigma_m,
                                                                    cfg.sensor.sigma_m)
         if sigma != self._table_sigma:
-            self._table.from_numpy(hit_table(cfg.sensor, self.tsdf.truncation_m, sigma))
+            self._table.from_numpy(code_table(cfg.sensor, self.tsdf.truncation_m, sigma))
             self._table_sigma = sigma
             self._fast = self._slow = None  # log-likelihoods change scale with sigma
             self._healthy = False
-        buf = np.zeros((cfg.sensor.points, 3), np.float32)
-        buf[:len(pts)] = pts
-        self._points.from_numpy(buf)
+        self.upload_scan(pts)
+        self.scan_likelihood(len(pts), self.cache_block)
         s = cfg.sensor
-        scan_log_likelihood(self.tsdf, p.pos, p.quat, p.n, self._points, len(pts), self._table,
-                            s.log_free, s.log_unknown, s.match_dist_m,
-                            s.tempering(len(pts)), p.log_w, p.match, p.ll_mean,
-                            self.cache_block)
         n = p.n
         self.anneal_beta = 1.0  # the extra tempering of this scan (1: none)
         if cfg.resample.anneal_min_ess > 0 and not self.ever_converged:
@@ -345,6 +352,30 @@ class Localizer:
         return result
 
     # ------------------------------------------------------------------------ helpers
+    def upload_scan(self, pts: np.ndarray) -> None:
+        """The reduced scan to the device, in Morton order of map blocks."""
+        m = len(pts)
+        self._points_host[:m] = pts[spatial_order(pts, self.tsdf.voxel_size_m * BLOCK)]
+        self._points_host[m:] = 0.0
+        self._points.from_numpy(self._points_host)
+
+    def scan_likelihood(self, n_points: int, cache_block: bool) -> None:
+        """Adds the tempered scan log-likelihood of the uploaded scan to every log-weight,
+        visiting the particles sorted by pose cell (a point 5 m away moves about a voxel
+        from one cell to the next) so that consecutive ones read the same map blocks."""
+        from mcl3d.kernels.likelihood import locality_keys, scan_log_likelihood
+
+        p = self.particles
+        vox = self.tsdf.voxel_size_m
+        locality_keys(p.pos, p.quat, p.n, vox, vox / 5.0, self._keys)
+        keys = self._keys.to_numpy()[:p.n].astype(np.uint16)
+        self._order_host[:p.n] = np.argsort(keys, kind="stable")
+        self._order.from_numpy(self._order_host)
+        scan_log_likelihood(self.tsdf, self._codes, self._slots, self._order, p.pos, p.quat,
+                            p.n, self._points, n_points, self._table,
+                            self.cfg.sensor.tempering(n_points), p.log_w, p.match, p.ll_mean,
+                            cache_block)
+
     def _anneal(self, n: int, scale: float) -> float:
         """Largest beta <= 1 with ESS(log_w_prev + beta * increment) >= anneal_min_ess * N;
         the increment already added is scaled down to beta times itself."""

@@ -8,7 +8,7 @@ from mcl3d import geometry
 from mcl3d.sensor_model import (
     HostMap,
     SensorModelConfig,
-    hit_table,
+    code_table,
     point_log_likelihood_numpy,
     scan_log_likelihood_numpy,
 )
@@ -39,24 +39,40 @@ def tiny_map():
     return tsdf
 
 
+def code_map(tsdf, cfg):
+    """The kernel's per-voxel codes (i32 words of two 16-bit codes) and coarse-cell slots."""
+    import taichi as ti
+
+    from mcl3d.kernels import likelihood as kl
+
+    codes = ti.field(ti.i32, shape=(tsdf.capacity + 2, kl.BLOCK, kl.BLOCK, kl.WORDS_Z))
+    slots = ti.field(ti.i32, shape=tsdf.coarse_dims)
+    kl.build_codes(tsdf, codes, tsdf.n_blocks, cfg.match_dist_m)
+    kl.build_slots(tsdf, slots)
+    return codes, slots
+
+
 def run_kernel(tsdf, positions, quats, points, cfg, cache_block):
     import taichi as ti
 
-    from mcl3d.kernels.likelihood import TABLE_SIZE, scan_log_likelihood
+    from mcl3d.kernels.likelihood import N_CODES, scan_log_likelihood
 
     n, m = len(positions), len(points)
     pos = ti.Vector.field(3, ti.f32, shape=n)
     quat = ti.Vector.field(4, ti.f32, shape=n)
     pts = ti.Vector.field(3, ti.f32, shape=m)
-    table = ti.field(ti.f32, shape=TABLE_SIZE)
+    table = ti.field(ti.f32, shape=N_CODES)
     log_w, match, ll_mean = (ti.field(ti.f32, shape=n) for _ in range(3))
     pos.from_numpy(positions.astype(np.float32))
     quat.from_numpy(quats.astype(np.float32))
     pts.from_numpy(points.astype(np.float32))
-    table.from_numpy(hit_table(cfg, tsdf.truncation_m))
+    table.from_numpy(code_table(cfg, tsdf.truncation_m))
     log_w.from_numpy(np.full(n, 2.0, np.float32))  # the kernel adds to the previous weight
-    scan_log_likelihood(tsdf, pos, quat, n, pts, m, table, cfg.log_free, cfg.log_unknown,
-                        cfg.match_dist_m, cfg.tempering(m), log_w, match, ll_mean, cache_block)
+    order = ti.field(ti.i32, shape=n)  # any permutation: results are per particle
+    order.from_numpy(np.random.default_rng(n).permutation(n).astype(np.int32))
+    codes, slots = code_map(tsdf, cfg)
+    scan_log_likelihood(tsdf, codes, slots, order, pos, quat, n, pts, m, table,
+                        cfg.tempering(m), log_w, match, ll_mean, cache_block)
     return log_w.to_numpy() - 2.0, match.to_numpy(), ll_mean.to_numpy()
 
 
@@ -78,6 +94,58 @@ def test_kernel_matches_numpy_twin(ti_runtime, cache_block):
     assert np.all(per_point < 4.0)
     np.testing.assert_allclose(k_ll, r_ll, atol=cfg.tempering(m) * 4.0)
     assert np.mean(np.abs(k_match - r_match) < 1e-6) > 0.9
+
+
+def test_codes_match_the_model_at_every_voxel(ti_runtime):
+    """Each voxel's code, decoded through the code table, is the NumPy model's value and
+    match flag at that voxel; unallocated cells point at the constant blocks."""
+    from mcl3d.kernels.likelihood import MATCH_BIT
+
+    tsdf = tiny_map()
+    host = HostMap.of(tsdf)
+    cfg = SensorModelConfig(sigma_m=0.05, match_dist_m=0.12)
+    codes, slots = code_map(tsdf, cfg)
+    words, slot = codes.to_numpy(), slots.to_numpy()
+    g = np.stack(np.meshgrid(*(np.arange(16),) * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    p = (g + 0.5) * VOX
+    d, w, b = host.lookup(p)
+    s = slot[g[:, 0] >> 3, g[:, 1] >> 3, g[:, 2] >> 3]
+    code = (words[s, g[:, 0] & 7, g[:, 1] & 7, (g[:, 2] & 7) >> 1] >> (16 * (g[:, 2] & 1))
+            ) & 0xFFFF
+    np.testing.assert_allclose(code_table(cfg, TRUNC)[code],
+                               point_log_likelihood_numpy(d, w, b, TRUNC, cfg), atol=1e-6)
+    observed = (b >= 0) & ((w > 0) | (d < np.float32(TRUNC * 0.999)))
+    np.testing.assert_array_equal((code >> MATCH_BIT) & 1,
+                                  observed & (np.abs(d) < cfg.match_dist_m))
+    assert set(np.unique(s[b == -3])) == {tsdf.capacity}
+    assert set(np.unique(s[b == -1])) == {tsdf.capacity + 1}
+
+
+def test_locality_keys_match_numpy(ti_runtime):
+    """15-bit Morton keys of (x, y, yaw) cells, each axis wrapped to 5 bits."""
+    import taichi as ti
+
+    from mcl3d.kernels.likelihood import locality_keys
+
+    rng = np.random.default_rng(2)
+    n = 300
+    positions = rng.uniform(-3.0, 3.0, size=(n, 3)).astype(np.float32)
+    quats = geometry.rot_to_quat(geometry.random_rotations(rng, n)).astype(np.float32)
+    pos = ti.Vector.field(3, ti.f32, shape=n)
+    quat = ti.Vector.field(4, ti.f32, shape=n)
+    keys = ti.field(ti.i32, shape=n)
+    pos.from_numpy(positions)
+    quat.from_numpy(quats)
+    locality_keys(pos, quat, n, 0.1, 0.02, keys)
+    yaw = geometry.rot_to_rpy(geometry.quat_to_rot(quats.astype(np.float64)))[:, 2]
+    cells = np.floor(np.column_stack([positions[:, :2] / 0.1, yaw / 0.02])).astype(np.int64)
+    expected = np.zeros(n, np.int64)
+    for bit in range(5):
+        for axis in range(3):
+            expected |= ((cells[:, axis] >> bit) & 1) << (3 * bit + axis)
+    # a value on a cell boundary may land on either side in f32
+    assert np.mean(keys.to_numpy() == expected) > 0.97
+    assert keys.to_numpy().max() < 2**15
 
 
 def test_point_cases(ti_runtime):
@@ -133,3 +201,29 @@ def test_deskew_moves_points_to_the_stamp():
     T_stamp_t = geometry.se3_exp(twist[None] * t[:, None])
     measured = np.einsum("nji,nj->ni", T_stamp_t[:, :3, :3], world - T_stamp_t[:, :3, 3])
     np.testing.assert_allclose(deskew(measured, t, twist), world, atol=1e-9)
+
+
+def test_reduce_scan_keeps_the_first_point_of_each_voxel():
+    """The one-key-per-cell dedup keeps exactly the points a row-wise np.unique would."""
+    from mcl3d.sensor_model import reduce_scan
+
+    rng = np.random.default_rng(5)
+    pts = rng.uniform(-20.0, 20.0, size=(5000, 3)).astype(np.float32)
+    pts[::7] = pts[::7] * 0.01 + 3.0  # many points share voxels
+    cfg = SensorModelConfig(voxel_m=0.5, points=65536, min_range_m=0.5, max_range_m=30.0)
+    r = np.linalg.norm(pts, axis=1)
+    idx = np.flatnonzero((r >= 0.5) & (r <= 30.0))
+    _, first = np.unique(np.floor(pts[idx] / 0.5).astype(np.int64), axis=0, return_index=True)
+    np.testing.assert_array_equal(reduce_scan(pts, cfg, rng), pts[idx[np.sort(first)]])
+
+
+def test_spatial_order_is_a_permutation_along_a_z_curve():
+    from mcl3d.sensor_model import spatial_order
+
+    g = np.stack(np.meshgrid(*(np.arange(4),) * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    order = spatial_order((g[::-1] + 0.5) * 0.4, 0.4)
+    np.testing.assert_array_equal(np.sort(order), np.arange(64))
+    cells = g[::-1][order]
+    assert np.all(np.abs(np.diff(cells[:8], axis=0)).max(axis=1) <= 1)  # the first 2^3 cube
+    np.testing.assert_array_equal(cells[0], [0, 0, 0])
+    np.testing.assert_array_equal(cells[-1], [3, 3, 3])
