@@ -15,7 +15,8 @@ import numpy as np
 from mcl3d.errors import ConfigError
 
 MAX_PARTICLES = 8_000_000  # one parallel loop must stay under Vulkan's 8M-iteration limit
-BYTES_PER_PARTICLE = 2 * (12 + 16) + 6 * 4  # two pose buffers + log_w, w, cdf, parent, match, ll
+# two pose buffers + log_w, w, cdf, parent, match, ll + the locality key and visiting order
+BYTES_PER_PARTICLE = 2 * (12 + 16) + 6 * 4 + 2 * 4
 
 
 def available_memory_bytes() -> int | None:
