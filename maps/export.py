@@ -70,13 +70,8 @@ def write_mesh(path: Path, geometry: MapGeometry, data: BlockData) -> int:
         raise InputError(f"{path}: unknown mesh type; use one of {', '.join(MESH_SUFFIXES)}")
     mesh = level_set_mesh(geometry, data).to_legacy()
     with atomic_path(path) as tmp:
-        target = tmp.with_suffix(path.suffix)
-        try:
-            if not o3d.io.write_triangle_mesh(str(target), mesh):
-                raise MapError(f"could not write the mesh to {path}")
-            target.replace(tmp)
-        finally:
-            target.unlink(missing_ok=True)
+        if not o3d.io.write_triangle_mesh(str(tmp), mesh):
+            raise MapError(f"could not write the mesh to {path}")
     return len(mesh.triangles)
 
 
@@ -91,11 +86,6 @@ def write_points(path: Path, geometry: MapGeometry, data: BlockData) -> int:
     pts = surface_points(geometry, data)
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
     with atomic_path(path) as tmp:
-        target = tmp.with_suffix(path.suffix)
-        try:
-            if not o3d.io.write_point_cloud(str(target), pcd):
-                raise MapError(f"could not write the point cloud to {path}")
-            target.replace(tmp)
-        finally:
-            target.unlink(missing_ok=True)
+        if not o3d.io.write_point_cloud(str(tmp), pcd):
+            raise MapError(f"could not write the point cloud to {path}")
     return len(pts)
