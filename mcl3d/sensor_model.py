@@ -124,17 +124,10 @@ def reduce_scan(points: np.ndarray, cfg: SensorModelConfig, rng: np.random.Gener
         idx = idx[np.sort(rng.choice(len(idx), cfg.points, replace=False))]
     out = pts[idx]
     if times_s is not None and twist is not None and len(times_s) == len(pts):
+        from mcl3d.preprocess import deskew
+
         out = deskew(out, np.asarray(times_s, dtype=np.float64)[idx], twist)
     return np.ascontiguousarray(out, dtype=np.float32)
-
-
-def deskew(points: np.ndarray, times_s: np.ndarray, twist: np.ndarray) -> np.ndarray:
-    """Points measured at `times_s` after the stamp, moved into the lidar frame at the stamp
-    under a constant twist: p_stamp = exp(t * twist) p_t."""
-    from mcl3d.geometry import se3_exp
-
-    T = se3_exp(np.asarray(twist, dtype=np.float64)[None] * times_s[:, None])
-    return np.einsum("nij,nj->ni", T[:, :3, :3], points) + T[:, :3, 3]
 
 
 @dataclass

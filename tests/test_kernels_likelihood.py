@@ -189,20 +189,6 @@ def test_table_matches_exact_model():
     assert np.max(np.abs(table - exact)) < 0.01
 
 
-def test_deskew_moves_points_to_the_stamp():
-    """A lidar turning and moving at a constant twist: points measured later in the sweep
-    land where a sensor frozen at the stamp would have seen them."""
-    from mcl3d.sensor_model import deskew
-
-    rng = np.random.default_rng(4)
-    twist = np.array([0.0, 0.0, 0.8, 1.5, 0.2, 0.0])  # rad/s, m/s in the lidar frame
-    world = rng.uniform(-10, 10, size=(200, 3))  # points in the lidar frame at the stamp
-    t = rng.uniform(0.0, 0.1, size=200)
-    T_stamp_t = geometry.se3_exp(twist[None] * t[:, None])
-    measured = np.einsum("nji,nj->ni", T_stamp_t[:, :3, :3], world - T_stamp_t[:, :3, 3])
-    np.testing.assert_allclose(deskew(measured, t, twist), world, atol=1e-9)
-
-
 def test_reduce_scan_keeps_the_first_point_of_each_voxel():
     """The one-key-per-cell dedup keeps exactly the points a row-wise np.unique would."""
     from mcl3d.sensor_model import reduce_scan
