@@ -2,18 +2,23 @@
 
 1. Fusion: one OS1-64-like scan (64 beams over ±16.6°, 1024 columns) ray cast in the
    simulated office (mcl3d.sim.worlds, 50 m x 20 m), fused into a 5 cm map with a
-   truncation of 4 voxels. mcl3d (Taichi) is timed per scan (block allocation + band +
-   free-space carving), in its two distance modes: point-to-plane with normals (the
-   default; normal estimation is timed separately, it runs in Open3D on the host) and
-   projective (no normals), with and without free-space carving (Open3D does none beyond
-   its truncation band). The baseline, in the same run on the same threads, is
+   truncation of 4 voxels. mcl3d (Taichi) is timed per scan (host preparation + block
+   allocation + band + free-space carving), in its two distance modes: point-to-plane with
+   normals (the default; normal estimation is timed separately, it runs in Open3D on the
+   host) and projective (no normals), with and without free-space carving (Open3D does
+   none beyond its truncation band). The point-to-plane fusion is also split into its
+   stages: host preparation, allocation, band, carving (carving = the update with carving
+   minus the update without). The baseline, in the same run on the same threads, is
    Open3D's tensor VoxelBlockGrid integration of the same scan: the points are projected
    into 4 pinhole depth images (90° each) and each is integrated (block lookup +
-   integrate), the way a projective TSDF takes a spinning lidar. Medians over repeats
-   after a warm-up; compile time excluded. The map is cleared between repeats, so every
-   repeat allocates its blocks afresh (as a scan of new ground does). Besides wall time,
-   the CPU time of the process per scan (all threads) is reported: on a shared machine
-   it depends far less on what else runs than wall time does.
+   integrate), the way a projective TSDF takes a spinning lidar (Open3D allocates blocks
+   from every 4th pixel of every 4th row only, so it stores about a third of our blocks).
+   The methods take turns, one scan each per round (a warm-up round first; compile time
+   excluded), so load from other work hits them alike; ratios are per round (Open3D's time
+   over ours in the same round), reported as median and min..max over rounds. The map is
+   cleared between rounds, so every round allocates its blocks afresh (as a scan of new
+   ground does). Besides wall time, the CPU time of the process per scan (all threads) is
+   reported: on a shared machine it depends far less on what else runs than wall time.
 2. Memory: the office map built from its mesh: allocated and free blocks, bytes per
    block (f32 while building, f32 and f16 read-only), total, against a dense grid.
 
@@ -68,27 +73,62 @@ def _median_ms(fn, repeats):
     return statistics.median(times), min(times)
 
 
-def _ours(points_l, T, geometry, normals, mode, repeats, carve=True):
-    """ms per scan (median, min, median CPU ms), fusing into one map that is cleared between
-    repeats (the kernels are compiled once per map, so a fresh map per repeat would time
-    the compiler)."""
-    from mcl3d.maps.build import BuildConfig, ScanFuser, new_map
+def _timed(fn, sync=None):
+    """(wall ms, cpu ms) of fn(), after sync() says the device is done."""
+    t0, c0 = time.perf_counter(), time.process_time()
+    fn()
+    if sync is not None:
+        sync()
+    return (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3
 
-    cfg = BuildConfig(normals=mode, capacity_blocks=200000, carve_free_space=carve)
-    tsdf = new_map(geometry, cfg)
-    times, cpu = [], []
-    for i in range(repeats + 1):
-        tsdf.clear()
-        tsdf.block_count.to_numpy()  # the clear is done
-        t0, c0 = time.perf_counter(), time.process_time()
-        ScanFuser(tsdf, cfg).fuse(points_l, T, normals_l=normals)
-        tsdf.block_count.to_numpy()  # wait for the device
-        if i > 0:  # the first run compiles
-            times.append((time.perf_counter() - t0) * 1e3)
-            cpu.append((time.process_time() - c0) * 1e3)
-    n_blocks = tsdf.n_blocks
-    tsdf.destroy()
-    return statistics.median(times), min(times), n_blocks, statistics.median(cpu)
+
+class _Ours:
+    """One scan fused into a map that is cleared between rounds (the kernels are compiled
+    once per map, so a fresh map per round would time the compiler)."""
+
+    def __init__(self, points_l, T, geometry, normals, mode, carve=True):
+        from mcl3d.maps.build import BuildConfig, ScanFuser, new_map
+
+        self.cfg = BuildConfig(normals=mode, capacity_blocks=200000, carve_free_space=carve)
+        self.tsdf = new_map(geometry, self.cfg)
+        self.fuser = ScanFuser(self.tsdf, self.cfg)
+        self.args = (points_l, T)
+        self.normals = normals
+
+    def sync(self):
+        self.tsdf.block_count.to_numpy()
+
+    def clear(self):
+        self.tsdf.clear()
+        self.tsdf.as_sums = True
+        self.sync()
+
+    def once(self):
+        self.clear()
+        return _timed(lambda: self.fuser.fuse(*self.args, normals_l=self.normals), self.sync)
+
+    def stages(self):
+        """(wall, cpu) ms of host preparation, allocation, band, carving."""
+        self.clear()
+        prep = {}
+
+        def prepare():
+            prep["scan"] = self.fuser.prepare(*self.args, normals_l=self.normals)
+
+        out = {"prepare": _timed(prepare)}
+        scan = prep["scan"]
+        out["allocate"] = _timed(lambda: self.fuser.allocate(scan), self.sync)
+        out["band"] = _timed(lambda: self.fuser.update(scan, False), self.sync)
+        self.clear()
+        self.fuser.allocate(scan)
+        self.sync()
+        both = _timed(lambda: self.fuser.update(scan, True), self.sync)
+        out["carve"] = (both[0] - out["band"][0], both[1] - out["band"][1])
+        return out
+
+    @property
+    def n_blocks(self):
+        return self.tsdf.n_blocks
 
 
 def _depth_images(points_l, width=256):
@@ -116,41 +156,43 @@ def _depth_images(points_l, width=256):
     return images, K
 
 
-def _open3d(points_l, T, repeats):
-    import open3d as o3d
-    import open3d.core as o3c
+class _Open3D:
+    """Open3D's VoxelBlockGrid integration of the scan as 4 depth images, fresh grid per
+    round (created outside the timing, as our map is cleared outside it)."""
 
-    images, K = _depth_images(points_l)
-    Kt = o3c.Tensor(K, o3c.float64)
-    prepared = [(o3d.t.geometry.Image(o3c.Tensor(depth)),
-                 o3c.Tensor(np.linalg.inv(T @ T_lc), o3c.float64)) for depth, T_lc in images]
-    state = {}
+    def __init__(self, points_l, T):
+        import open3d as o3d
+        import open3d.core as o3c
 
-    def run():
+        images, K = _depth_images(points_l)
+        self.K = o3c.Tensor(K, o3c.float64)
+        self.prepared = [(o3d.t.geometry.Image(o3c.Tensor(depth)),
+                          o3c.Tensor(np.linalg.inv(T @ T_lc), o3c.float64))
+                         for depth, T_lc in images]
+        self.pixels = sum(int((d > 0).sum()) for d, _ in images)
+        self.n_blocks = 0
+
+    def once(self):
+        import open3d as o3d
+        import open3d.core as o3c
+
         grid = o3d.t.geometry.VoxelBlockGrid(
             attr_names=("tsdf", "weight"), attr_dtypes=(o3c.float32, o3c.float32),
             attr_channels=((1,), (1,)), voxel_size=VOXEL, block_resolution=8,
             block_count=200000)
-        t0, c0 = time.perf_counter(), time.process_time()
-        for image, extrinsic in prepared:
-            blocks = grid.compute_unique_block_coordinates(
-                image, Kt, extrinsic, depth_scale=1.0, depth_max=100.0,
-                trunc_voxel_multiplier=4.0)
-            grid.integrate(blocks, image, Kt, extrinsic, depth_scale=1.0, depth_max=100.0,
-                           trunc_voxel_multiplier=4.0)
-        grid.hashmap().size()  # wait for the last integration
-        state["t"] = (time.perf_counter() - t0) * 1e3
-        state["cpu"] = (time.process_time() - c0) * 1e3
-        state["blocks"] = grid.hashmap().size()
 
-    run()
-    times, cpu = [], []
-    for _ in range(repeats):
-        run()
-        times.append(state["t"])
-        cpu.append(state["cpu"])
-    return statistics.median(times), min(times), state["blocks"], statistics.median(cpu), sum(
-        int((d > 0).sum()) for d, _ in images)
+        def integrate():
+            for image, extrinsic in self.prepared:
+                blocks = grid.compute_unique_block_coordinates(
+                    image, self.K, extrinsic, depth_scale=1.0, depth_max=100.0,
+                    trunc_voxel_multiplier=4.0)
+                grid.integrate(blocks, image, self.K, extrinsic, depth_scale=1.0,
+                               depth_max=100.0, trunc_voxel_multiplier=4.0)
+            grid.hashmap().size()  # wait for the last integration
+
+        out = _timed(integrate)
+        self.n_blocks = grid.hashmap().size()
+        return out
 
 
 def _memory(vertices, triangles):
@@ -174,10 +216,15 @@ def _memory(vertices, triangles):
             "dense_grid_bytes_f32": dense, "build_from_mesh_s": round(seconds, 2)}
 
 
+def _summary(values):
+    return {"median": statistics.median(values), "min": min(values), "max": max(values)}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--backend", default="cpu")
-    parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument("--repeats", type=int, default=9, help="timed rounds")
+    parser.add_argument("--skip-memory", action="store_true", help="fusion timings only")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args()
 
@@ -197,61 +244,88 @@ def main() -> None:
     normals = estimate_normals(points, k, np.zeros((1, 3)))
     normals_ms = _median_ms(lambda: estimate_normals(points, k, np.zeros((1, 3))),
                             args.repeats)[0]
-    plane = _ours(points, T, geometry, normals, "knn", args.repeats)
-    proj = _ours(points, T, geometry, None, "none", args.repeats)
-    band_only = _ours(points, T, geometry, None, "none", args.repeats, carve=False)
-    o3d_ms = _open3d(points, T, args.repeats)
-    memory = _memory(vertices, triangles)
+    methods = {
+        "point_to_plane": _Ours(points, T, geometry, normals, "knn"),
+        "projective": _Ours(points, T, geometry, None, "none"),
+        "projective_no_carving": _Ours(points, T, geometry, None, "none", carve=False),
+        "open3d": _Open3D(points, T),
+    }
+    stages_of = methods["point_to_plane"]
+    wall = {name: [] for name in methods}
+    cpu = {name: [] for name in methods}
+    stages = {}
+    for rnd in range(args.repeats + 1):  # round 0 compiles and warms up
+        for name, method in methods.items():
+            w, c = method.once()
+            if rnd:
+                wall[name].append(w)
+                cpu[name].append(c)
+        split = stages_of.stages()
+        if rnd:
+            for stage, (w, c) in split.items():
+                stages.setdefault(stage, {"wall": [], "cpu": []})
+                stages[stage]["wall"].append(w)
+                stages[stage]["cpu"].append(c)
+    o3d_wall, o3d_cpu = wall["open3d"], cpu["open3d"]
+    ratio = {name: [o / t for o, t in zip(o3d_wall, wall[name], strict=True)]
+             for name in methods}
+    ratio_cpu = {name: [o / t for o, t in zip(o3d_cpu, cpu[name], strict=True)]
+                 for name in methods}
+    memory = None if args.skip_memory else _memory(vertices, triangles)
 
     threads = os.environ.get("OMP_NUM_THREADS", str(os.cpu_count()))
-    rows = [
-        ("mcl3d point-to-plane (fuse)", plane[0], plane[1], plane[2], plane[3]),
-        ("mcl3d point-to-plane + normals", plane[0] + normals_ms, None, plane[2], None),
-        ("mcl3d projective", proj[0], proj[1], proj[2], proj[3]),
-        ("mcl3d projective, no carving (as Open3D)", band_only[0], band_only[1], band_only[2],
-         band_only[3]),
-        ("Open3D VoxelBlockGrid (4 depth images)", o3d_ms[0], o3d_ms[1], o3d_ms[2], o3d_ms[3]),
-    ]
+    labels = {"point_to_plane": "mcl3d point-to-plane (fuse)",
+              "projective": "mcl3d projective",
+              "projective_no_carving": "mcl3d projective, no carving (as Open3D)",
+              "open3d": "Open3D VoxelBlockGrid (4 depth images)"}
     print(f"\nTSDF fusion of one {BEAMS}x{COLUMNS} scan ({len(points)} points; Open3D gets "
-          f"{o3d_ms[4]} depth pixels), {VOXEL * 100:.0f} cm voxels, trunc 4 voxels; "
-          f"{info.backend} on {info.device}, OMP_NUM_THREADS={threads}")
-    print(f"{'method':42s} {'median ms':>10s} {'min ms':>8s} {'blocks':>8s} {'vs Open3D':>10s} "
-          f"{'cpu ms':>8s} {'cpu vs O3D':>10s}")
-    for name, med, best, blocks, cpu_ms in rows:
-        ratio = o3d_ms[0] / med
-        cpu_cols = (f"{cpu_ms:8.1f} {o3d_ms[3] / cpu_ms:9.2f}x" if cpu_ms
-                    else f"{'':8s} {'':10s}")
-        print(f"{name:42s} {med:10.1f} {best if best is None else round(best, 1)!s:>8s} "
-              f"{blocks:8d} {ratio:9.2f}x {cpu_cols}")
-    print(f"(normal estimation alone: {normals_ms:.1f} ms; ratio > 1 = faster than Open3D; "
-          f"cpu ms: process CPU time per scan, all threads)")
-    mb = 1 / 2**20
-    print(f"\nOffice map {memory['extent_m']} m from its mesh: {memory['blocks']} blocks "
-          f"allocated, {memory['free_blocks']} free, of {memory['cells']} cells")
-    for key, per in memory["bytes_per_block"].items():
-        print(f"  {key:10s} {per:6d} B/block  total {memory['total_bytes'][key] * mb:8.1f} MiB")
-    print(f"  dense f32 grid (distance + weight): {memory['dense_grid_bytes_f32'] * mb:.1f} MiB")
+          f"{methods['open3d'].pixels} depth pixels), {VOXEL * 100:.0f} cm voxels, trunc 4 "
+          f"voxels; {info.backend} on {info.device}, OMP_NUM_THREADS={threads}, "
+          f"{args.repeats} rounds")
+    print(f"{'method':42s} {'median ms':>9s} {'min ms':>7s} {'blocks':>7s} "
+          f"{'vs Open3D (min..max)':>21s} {'cpu ms':>7s} {'cpu vs O3D':>10s}")
+    for name, method in methods.items():
+        r = _summary(ratio[name])
+        print(f"{labels[name]:42s} {statistics.median(wall[name]):9.1f} "
+              f"{min(wall[name]):7.1f} {method.n_blocks:7d} "
+              f"{r['median']:6.2f}x ({r['min']:.2f}..{r['max']:.2f}) "
+              f"{statistics.median(cpu[name]):7.1f} "
+              f"{statistics.median(ratio_cpu[name]):9.2f}x")
+    plane_ms = statistics.median(wall["point_to_plane"])
+    print(f"{'mcl3d point-to-plane + normals':42s} {plane_ms + normals_ms:9.1f}")
+    print("point-to-plane stages (median ms, wall / cpu): " + ", ".join(
+        f"{stage} {statistics.median(v['wall']):.1f} / {statistics.median(v['cpu']):.1f}"
+        for stage, v in stages.items()))
+    print(f"(normal estimation alone: {normals_ms:.1f} ms; ratio > 1 = faster than Open3D, "
+          f"per round; cpu ms: process CPU time per scan, all threads)")
+    if memory is not None:
+        mb = 1 / 2**20
+        print(f"\nOffice map {memory['extent_m']} m from its mesh: {memory['blocks']} blocks "
+              f"allocated, {memory['free_blocks']} free, of {memory['cells']} cells")
+        for key, per in memory["bytes_per_block"].items():
+            print(f"  {key:10s} {per:6d} B/block  total "
+                  f"{memory['total_bytes'][key] * mb:8.1f} MiB")
+        print(f"  dense f32 grid (distance + weight): "
+              f"{memory['dense_grid_bytes_f32'] * mb:.1f} MiB")
     if args.json:
         result = {
             "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(),
                         "omp_threads": threads, "backend": info.backend,
                         "device": info.device},
             "scan": {"beams": BEAMS, "columns": COLUMNS, "points": len(points),
-                     "o3d_depth_pixels": o3d_ms[4]},
-            "fusion_ms": {"point_to_plane": plane[0], "point_to_plane_min": plane[1],
-                          "normals": normals_ms, "projective": proj[0],
-                          "projective_min": proj[1], "projective_no_carving": band_only[0],
-                          "open3d": o3d_ms[0],
-                          "open3d_min": o3d_ms[1]},
-            "fusion_cpu_ms": {"point_to_plane": plane[3], "projective": proj[3],
-                              "projective_no_carving": band_only[3], "open3d": o3d_ms[3]},
-            "ratio_open3d_over_ours": {"point_to_plane": o3d_ms[0] / plane[0],
-                                       "point_to_plane_with_normals":
-                                           o3d_ms[0] / (plane[0] + normals_ms),
-                                       "projective": o3d_ms[0] / proj[0],
-                                       "projective_no_carving": o3d_ms[0] / band_only[0]},
-            "blocks_allocated": {"point_to_plane": plane[2], "projective": proj[2],
-                                 "open3d": o3d_ms[2]},
+                     "o3d_depth_pixels": methods["open3d"].pixels},
+            "rounds": args.repeats,
+            "fusion_ms": {name: _summary(v) for name, v in wall.items()},
+            "fusion_cpu_ms": {name: _summary(v) for name, v in cpu.items()},
+            "normals_ms": normals_ms,
+            "point_to_plane_stages_ms": {
+                stage: {"wall": _summary(v["wall"]), "cpu": _summary(v["cpu"])}
+                for stage, v in stages.items()},
+            "ratio_open3d_over_ours": {name: _summary(v) for name, v in ratio.items()
+                                       if name != "open3d"},
+            "ratio_open3d_over_ours_cpu": {name: _summary(v) for name, v in ratio_cpu.items()
+                                           if name != "open3d"},
+            "blocks_allocated": {name: m.n_blocks for name, m in methods.items()},
             "office_memory": memory,
         }
         args.json.parent.mkdir(parents=True, exist_ok=True)

@@ -315,13 +315,19 @@ def unmark_free_voxels(m: ti.template(), start: ti.i32, count: ti.i32):
 
 # --------------------------------------------------------------------- scan fusion
 @ti.func
-def accumulate(m: ti.template(), g: ivec3, d: ti.f32, w: ti.f32):
-    """Add one observation (d, w) to the running sums of voxel g, if its block exists."""
+def accumulate_sums(m: ti.template(), g: ivec3, wd: ti.f32, w: ti.f32):
+    """Add summed observations (sum of w*d, sum of w) to voxel g, if its block exists."""
     if in_grid(m, g):
         b = m.coarse[g[0] >> 3, g[1] >> 3, g[2] >> 3]
         if b >= 0:
-            ti.atomic_add(m.sdf[b, g[0] & 7, g[1] & 7, g[2] & 7], w * d)
+            ti.atomic_add(m.sdf[b, g[0] & 7, g[1] & 7, g[2] & 7], wd)
             ti.atomic_add(m.weight[b, g[0] & 7, g[1] & 7, g[2] & 7], w)
+
+
+@ti.func
+def accumulate(m: ti.template(), g: ivec3, d: ti.f32, w: ti.f32):
+    """Add one observation (d, w) to the running sums of voxel g, if its block exists."""
+    accumulate_sums(m, g, w * d, w)
 
 
 @ti.func
@@ -565,13 +571,51 @@ def carve_ray(m: ti.template(), o: vec3, u: vec3, s_free: ti.f32):
                         break
 
 
+def max_band_samples(m) -> int:
+    """An upper bound of band_samples for any behind_m <= truncation (f32 ceil included),
+    for ti.static."""
+    return int(2.0 * m.truncation_m / m.voxel_size_m) + 3
+
+
+@ti.func
+def band_patch(m: ti.template(), p: vec3, nr: vec3, k: ti.i32, behind_m: ti.f32,
+               k_w: ti.f32, e1: vec3, e2: vec3):
+    """The band of a point whose patch has more than one column, straight into the map."""
+    trunc = m.truncation_m
+    pg = world_to_grid(m, p)  # sample (a, b, j) is at column_base(a, b) + s_j nv
+    nv = nr * (1.0 / m.voxel_size_m)
+    for a, b in ti.ndrange(k + 1, k + 1):
+        base = column_base(pg, e1, e2, k, a, b)
+        last = ivec3(-(1 << 30))
+        for j in range(band_samples(m, behind_m)):
+            s = ti.min(-behind_m + j * m.voxel_size_m, trunc)
+            g = ti.cast(ti.floor(base + s * nv), ti.i32)
+            if (g != last).any():
+                last = g
+                # a point updates a voxel once (duplicates come from the adjacent columns):
+                # skip it when column a-1 or b-1 put its sample at this depth into it
+                seen = False
+                if a > 0:
+                    seen = (ti.cast(ti.floor(column_base(pg, e1, e2, k, a - 1, b) + s * nv),
+                                    ti.i32) == g).all()
+                if b > 0 and not seen:
+                    seen = (ti.cast(ti.floor(column_base(pg, e1, e2, k, a, b - 1) + s * nv),
+                                    ti.i32) == g).all()
+                if not seen:
+                    v = voxel_center(m, g) - p
+                    d = v.dot(nr)
+                    if -behind_m <= d <= trunc:
+                        accumulate(m, g, d, ti.exp(k_w * v.dot(v)))
+
+
 @ti.kernel
 def scan_fuse(m: ti.template(), pts: ti.types.ndarray(dtype=vec3, ndim=1),
               nrm: ti.types.ndarray(dtype=vec3, ndim=1),
               alpha: ti.types.ndarray(dtype=ti.f32, ndim=1), n: ti.i32,
               q0: vec4, t0: vec3, q1: vec4, t1: vec3, min_range: ti.f32,
               max_range: ti.f32, spacing_rad: ti.f32, behind_m: ti.f32,
-              use_normals: ti.template(), carve: ti.template(), sigma_weight_m: ti.f32):
+              use_normals: ti.template(), carve: ti.template(), sigma_weight_m: ti.f32,
+              run_length: ti.i32):
     """Pass 2 of a scan: the truncation band around each point + free-space carving.
 
     Band: voxels on a patch of the point's tangent plane (half the gap to the next ray
@@ -585,44 +629,63 @@ def scan_fuse(m: ti.template(), pts: ti.types.ndarray(dtype=vec3, ndim=1),
     to block) and voxels of allocated blocks count free-space hits; finalize_blocks uses
     them only for voxels no band reached (a ray passing a voxel says it is free, not how
     far the surface is).
+
+    Near rays are denser than voxels (a one-column band, footprint_steps = 0), so
+    consecutive points of a scan line mostly hit the same voxels: one thread takes a run
+    of run_length consecutive points and sums their one-column bands in registers (slot j
+    holds depth sample j), writing a voxel's sums once, when the next point's sample j
+    leaves it. The sums are those of updating voxel by voxel, only added in another order,
+    so run_length changes no result beyond f32 rounding.
     """
     delta = scan_motion(q0, q1)
-    for i in range(n):
-        if point_ok(pts[i], min_range, max_range):
-            p, o, u, r, nr, c = ray_setup(pts[i], nrm[i], alpha[i], q0, t0, delta, t1,
-                                          use_normals)
-            trunc = m.truncation_m
-            if ti.static(carve):
-                carve_ray(m, o, u, r - trunc / c)
-            k = footprint_steps(m, r, spacing_rad)
-            e1, e2 = patch_tangents(nr, k)
-            k_w = -0.5 / (sigma_weight_m * sigma_weight_m)
-            # the patch in voxel units: sample (a, b, j) is at column_base(a, b) + s_j nv
-            pg = world_to_grid(m, p)
-            nv = nr * (1.0 / m.voxel_size_m)
-            for a, b in ti.ndrange(k + 1, k + 1):
-                base = column_base(pg, e1, e2, k, a, b)
-                last = ivec3(-(1 << 30))
-                for j in range(band_samples(m, behind_m)):
-                    s = ti.min(-behind_m + j * m.voxel_size_m, trunc)
-                    g = ti.cast(ti.floor(base + s * nv), ti.i32)
-                    if (g != last).any():
-                        last = g
-                        # a point updates a voxel once (duplicates come from the adjacent
-                        # columns): skip it when column a-1 or b-1 put its sample at this
-                        # depth into it
-                        seen = False
-                        if a > 0:
-                            seen = (ti.cast(ti.floor(column_base(pg, e1, e2, k, a - 1, b)
-                                                     + s * nv), ti.i32) == g).all()
-                        if b > 0 and not seen:
-                            seen = (ti.cast(ti.floor(column_base(pg, e1, e2, k, a, b - 1)
-                                                     + s * nv), ti.i32) == g).all()
-                        if not seen:
-                            v = voxel_center(m, g) - p
-                            d = v.dot(nr)
-                            if -behind_m <= d <= trunc:
-                                accumulate(m, g, d, ti.exp(k_w * v.dot(v)))
+    trunc = m.truncation_m
+    k_w = -0.5 / (sigma_weight_m * sigma_weight_m)
+    n_max = ti.static(max_band_samples(m))
+    n_s = band_samples(m, behind_m)
+    for run in range((n + run_length - 1) // run_length):
+        slot_g = ti.Matrix.zero(ti.i32, n_max, 3)
+        slot_wd = ti.Vector.zero(ti.f32, n_max)
+        slot_w = ti.Vector.zero(ti.f32, n_max)
+        for i in range(run * run_length, ti.min(n, (run + 1) * run_length)):
+            if point_ok(pts[i], min_range, max_range):
+                p, o, u, r, nr, c = ray_setup(pts[i], nrm[i], alpha[i], q0, t0, delta, t1,
+                                              use_normals)
+                if ti.static(carve):
+                    carve_ray(m, o, u, r - trunc / c)
+                k = footprint_steps(m, r, spacing_rad)
+                if k > 0:
+                    e1, e2 = tangent_basis(nr)
+                    band_patch(m, p, nr, k, behind_m, k_w, e1, e2)
+                else:
+                    pg = world_to_grid(m, p)
+                    nv = nr * (1.0 / m.voxel_size_m)
+                    last = ivec3(-(1 << 30))
+                    for j in ti.static(range(n_max)):
+                        if j < n_s:
+                            s = ti.min(-behind_m + j * m.voxel_size_m, trunc)
+                            g = ti.cast(ti.floor(pg + s * nv), ti.i32)
+                            if (g != last).any():
+                                last = g
+                                v = voxel_center(m, g) - p
+                                d = v.dot(nr)
+                                if -behind_m <= d <= trunc:
+                                    w = ti.exp(k_w * v.dot(v))
+                                    same = (slot_g[j, 0] == g[0] and slot_g[j, 1] == g[1]
+                                            and slot_g[j, 2] == g[2])
+                                    if slot_w[j] > 0.0 and not same:
+                                        accumulate_sums(m, ivec3(slot_g[j, 0], slot_g[j, 1],
+                                                                 slot_g[j, 2]),
+                                                        slot_wd[j], slot_w[j])
+                                        slot_w[j] = 0.0
+                                        slot_wd[j] = 0.0
+                                    for a in ti.static(range(3)):
+                                        slot_g[j, a] = g[a]
+                                    slot_wd[j] += w * d
+                                    slot_w[j] += w
+        for j in ti.static(range(n_max)):
+            if slot_w[j] > 0.0:
+                accumulate_sums(m, ivec3(slot_g[j, 0], slot_g[j, 1], slot_g[j, 2]),
+                                slot_wd[j], slot_w[j])
 
 
 # ------------------------------------------------------------ points with normals

@@ -10,6 +10,8 @@ memory and blur thin structures (walls thinner than the band lose their back sid
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from pydantic import Field, model_validator
 
@@ -18,6 +20,9 @@ from mcl3d.errors import MapError, PointCloudError
 from mcl3d.maps.tsdf import BLOCK, CHUNK_CELLS, MapGeometry, TsdfMap
 
 TRUNCATION_VOXELS = 4
+CPU_RUN_LENGTH = 64
+GPU_RUN_LENGTH = 4
+PERCENTILE_SAMPLES = 8192
 
 
 class BuildConfig(Section):
@@ -129,11 +134,29 @@ def estimate_normals(points: np.ndarray, k: int, viewpoints: np.ndarray | None =
 
 
 # ------------------------------------------------------------------------- scans
+@dataclass
+class PreparedScan:
+    """A scan ready for the fusion kernels: f32 arrays plus the launch's scalar arguments."""
+
+    points_l: np.ndarray  # (n, 3) f32, lidar frame
+    normals_l: np.ndarray  # (n, 3) f32 (zeros when fusing without normals)
+    alpha: np.ndarray  # (n,) f32 in [0, 1]: where between the two poses each point was taken
+    args: tuple  # poses, ranges, ray spacing, behind_m, use_normals (see kernels.tsdf)
+
+    def chunks(self):
+        """Slices of at most CHUNK_CELLS points, one kernel launch each."""
+        n = len(self.points_l)
+        for s in range(0, n, CHUNK_CELLS):
+            e = min(n, s + CHUNK_CELLS)
+            yield PreparedScan(self.points_l[s:e], self.normals_l[s:e], self.alpha[s:e],
+                               self.args)
+
+
 class ScanFuser:
     """Fuses scans into a TSDF: truncation band per ray plus free-space carving.
 
-    Each scan runs two kernels: allocation of the band's blocks, then band update and
-    carving, which reads the block ids allocated by the first launch.
+    Each scan runs two kernels: allocation of the band's blocks (`allocate`), then band
+    update and carving (`update`), which reads the block ids allocated by the first launch.
     """
 
     def __init__(self, tsdf: TsdfMap, config: BuildConfig):
@@ -149,15 +172,27 @@ class ScanFuser:
         `alpha` in [0, 1] per point places it between the poses T_start and T_end
         (deskewing); without it every point uses T_start.
         """
+        scan = self.prepare(points_l, T_start, T_end, alpha, normals_l)
+        if scan is None:
+            return
+        for part in scan.chunks():
+            self.allocate(part)
+            self.update(part, self.config.carve_free_space)
+        self.n_scans += 1
+        self.n_points += len(scan.points_l)
+
+    def prepare(self, points_l: np.ndarray, T_start: np.ndarray,
+                T_end: np.ndarray | None = None, alpha: np.ndarray | None = None,
+                normals_l: np.ndarray | None = None) -> PreparedScan | None:
+        """The scan as the kernels take it (None for an empty scan); arguments as `fuse`."""
         import taichi as ti
 
         from mcl3d.geometry import rot_to_quat
-        from mcl3d.kernels import tsdf as k
 
         pts = np.ascontiguousarray(points_l, dtype=np.float32).reshape(-1, 3)
         n = len(pts)
         if n == 0:
-            return
+            return None
         cfg = self.config
         use_normals = cfg.normals == "knn"
         if use_normals and normals_l is None:
@@ -176,16 +211,34 @@ class ScanFuser:
                 ti.math.vec4(*q1), ti.math.vec3(*T_end[:3, 3]),
                 cfg.min_range_m, cfg.max_range_m, spacing, min(cfg.behind_m, cfg.trunc_m),
                 use_normals)
+        return PreparedScan(pts, nrm, a, args)
+
+    def allocate(self, scan: PreparedScan) -> None:
+        """Pass 1: allocate (and initialize) the blocks the scan's bands reach."""
+        from mcl3d.kernels import tsdf as k
+
         m = self.tsdf
-        for s in range(0, n, CHUNK_CELLS):
-            e = min(n, s + CHUNK_CELLS)
-            before = m.requested_blocks
-            k.scan_allocate(m, pts[s:e], nrm[s:e], a[s:e], e - s, *args)
-            m.init_new_blocks(before, m.requested_blocks)
-            k.scan_fuse(m, pts[s:e], nrm[s:e], a[s:e], e - s, *args, cfg.carve_free_space,
-                        cfg.sigma_w_m)
-        self.n_scans += 1
-        self.n_points += n
+        before = m.requested_blocks
+        k.scan_allocate(m, scan.points_l, scan.normals_l, scan.alpha, len(scan.points_l),
+                        *scan.args)
+        m.init_new_blocks(before, m.requested_blocks)
+
+    def update(self, scan: PreparedScan, carve: bool) -> None:
+        """Pass 2: the truncation bands, and free-space carving when `carve`."""
+        from mcl3d.kernels import tsdf as k
+
+        k.scan_fuse(self.tsdf, scan.points_l, scan.normals_l, scan.alpha, len(scan.points_l),
+                    *scan.args, carve, self.config.sigma_w_m, run_length())
+
+
+def run_length() -> int:
+    """Consecutive points one thread fuses (kernels.tsdf.scan_fuse): long runs on cpu, whose
+    few threads gain most from merged voxel updates, short ones on GPUs, which need
+    thousands of threads."""
+    from mcl3d import runtime
+
+    info = runtime.current()
+    return CPU_RUN_LENGTH if info is None or info.backend == "cpu" else GPU_RUN_LENGTH
 
 
 def ray_spacing_rad(points_l: np.ndarray) -> float:
@@ -194,14 +247,19 @@ def ray_spacing_rad(points_l: np.ndarray) -> float:
     The solid angle is that of the elevation band the scan covers (a spinning lidar's
     vertical field of view), from the 1st to the 99th percentile of its elevations.
     """
-    r = np.sqrt(np.einsum("ij,ij->i", points_l, points_l))
-    ok = r > 0
+    r2 = np.einsum("ij,ij->i", points_l, points_l)
+    ok = r2 > 0
     n_ok = int(np.count_nonzero(ok))
     if n_ok < 2:
         return 0.0
     # sin(elevation) = z / r: percentiles of it are those of the elevations (arcsin is
-    # monotonic; only the interpolation between neighbouring samples differs)
-    sin_el = np.clip(points_l[ok, 2] / r[ok], -1, 1)
+    # monotonic; only the interpolation between neighbouring samples differs). Every k-th
+    # point is plenty for the 1st and 99th percentiles and keeps this off the fusion's time.
+    step = max(1, len(points_l) // PERCENTILE_SAMPLES)
+    sub_ok = ok[::step]
+    if np.count_nonzero(sub_ok) < 2:
+        sub_ok, step = ok, 1
+    sin_el = np.clip(points_l[::step, 2][sub_ok] / np.sqrt(r2[::step][sub_ok]), -1, 1)
     lo, hi = np.percentile(sin_el, [1, 99])
     solid_angle = 2 * np.pi * max(hi - lo, 1e-3)
     return float(np.sqrt(solid_angle / n_ok))

@@ -39,25 +39,33 @@ def test_allocation_past_capacity_says_how_many_blocks(ti_runtime):
     assert (tsdf.coarse_numpy() == -2).sum() == 2  # OVERFLOW cells
 
 
-def _ray_reference(origin, point, tsdf, behind, sigma):
-    """Float64 re-implementation of scan_allocate + scan_fuse (projective, one column)."""
+def _grid(tsdf):
+    o0, v = np.asarray(tsdf.origin_m), tsdf.voxel_size_m
+    return lambda x: np.floor((x - o0) / v).astype(int)
+
+
+def _column(origin, point, tsdf, behind):
+    """The band samples of a one-column point (projective: along the reversed ray)."""
     v, trunc = tsdf.voxel_size_m, tsdf.truncation_m
-    o0 = np.asarray(tsdf.origin_m)
-    grid = lambda x: np.floor((x - o0) / v).astype(int)  # noqa: E731
+    n = -(point - origin) / np.linalg.norm(point - origin)
+    samples = int(np.ceil((behind + trunc) / v)) + 1
+    return [point + min(-behind + j * v, trunc) * n for j in range(samples)], n
+
+
+def _carve_reference(origin, point, tsdf, blocks):
+    """Free-space hits {voxel: 1} in allocated `blocks` and blocks made FREE by one ray."""
+    v, trunc = tsdf.voxel_size_m, tsdf.truncation_m
+    o0, grid = np.asarray(tsdf.origin_m), _grid(tsdf)
     r = np.linalg.norm(point - origin)
     u = (point - origin) / r
-    n = -u
-    samples = int(np.ceil((behind + trunc) / v)) + 1
-    column = [point + min(-behind + j * v, trunc) * n for j in range(samples)]
-    blocks = {tuple(grid(x) >> 3) for x in column}
-    band, free_hits, free_blocks = {}, {}, set()
-    s, last = 0.0, None
-    while s < r - trunc:  # carving
+    free_hits, free_blocks, last = {}, set(), None
+    s = 0.0
+    while s < r - trunc:
         g = grid(origin + s * u)
         b = tuple(g >> 3)
         if b in blocks:
-            if last is None or tuple(g) != last:
-                free_hits[tuple(g)] = free_hits.get(tuple(g), 0) + 1
+            if tuple(g) != last:
+                free_hits[tuple(g)] = 1
                 last = tuple(g)
             s += v
         else:
@@ -67,8 +75,16 @@ def _ray_reference(origin, point, tsdf, behind, sigma):
             ex = [((hi if u[k] > 0 else lo)[k] - origin[k]) / u[k] for k in range(3)
                   if abs(u[k]) > 1e-9]
             s = max(min(ex), s) + 1e-4
-    last = None
-    for x in column:  # band
+    return free_hits, free_blocks
+
+
+def _band_reference(origin, point, tsdf, behind, sigma):
+    """{voxel: (d, w)} of one point's one-column band."""
+    v, trunc = tsdf.voxel_size_m, tsdf.truncation_m
+    o0, grid = np.asarray(tsdf.origin_m), _grid(tsdf)
+    column, n = _column(origin, point, tsdf, behind)
+    band, last = {}, None
+    for x in column:
         g = grid(x)
         if last is None or tuple(g) != last:
             last = tuple(g)
@@ -76,10 +92,48 @@ def _ray_reference(origin, point, tsdf, behind, sigma):
             d = np.dot(c - point, n)
             if -behind <= d <= trunc:
                 band[tuple(g)] = d, np.exp(-0.5 * np.dot(c - point, c - point) / sigma**2)
-    return band, free_hits, blocks, free_blocks - blocks
+    return band
 
 
-def test_fusion_of_one_ray_matches_numpy(ti_runtime):
+def _scan_reference(origin, points, tsdf, behind, sigma):
+    """Float64 re-implementation of scan_allocate + scan_fuse for one-column points.
+
+    Band: per voxel the sums of w*d and w over all points; free-space hits: per voxel the
+    number of rays that cross it.
+    """
+    grid = _grid(tsdf)
+    blocks = {tuple(grid(x) >> 3) for p in points for x in _column(origin, p, tsdf, behind)[0]}
+    sums, free_hits, free_blocks = {}, {}, set()
+    for p in points:
+        for g, (d, w) in _band_reference(origin, p, tsdf, behind, sigma).items():
+            wd0, w0 = sums.get(g, (0.0, 0.0))
+            sums[g] = wd0 + w * d, w0 + w
+        hits, free = _carve_reference(origin, p, tsdf, blocks)
+        for g in hits:
+            free_hits[g] = free_hits.get(g, 0) + 1
+        free_blocks |= free
+    return sums, free_hits, blocks, free_blocks - blocks
+
+
+def _ray_reference(origin, point, tsdf, behind, sigma):
+    sums, free_hits, blocks, free_blocks = _scan_reference(origin, [point], tsdf, behind, sigma)
+    return {g: (wd / w, w) for g, (wd, w) in sums.items()}, free_hits, blocks, free_blocks
+
+
+def _pool_sums(tsdf):
+    """{voxel: (sum w*d, sum w)} of every voxel with band weight, read from the pool."""
+    data = tsdf.blocks()
+    got = {}
+    for b, c in enumerate(data.coords):
+        for idx in zip(*np.nonzero(data.weight[b] > 0), strict=True):
+            got[tuple(np.asarray(c) * 8 + np.asarray(idx))] = (data.sdf[b][idx],
+                                                               data.weight[b][idx])
+    return data, got
+
+
+def test_fusion_of_a_ray_and_a_scan_line_matches_numpy(ti_runtime):
+    """One ray in full (band, carving, finalize), then a scan line on the same map (the
+    kernels compile once per map)."""
     import taichi as ti
 
     from mcl3d.kernels import tsdf as k
@@ -97,16 +151,11 @@ def test_fusion_of_one_ray_matches_numpy(ti_runtime):
             behind, False)
     k.scan_allocate(tsdf, *args)
     tsdf.init_new_blocks(0, tsdf.requested_blocks)
-    k.scan_fuse(tsdf, *args, True, sigma)
+    k.scan_fuse(tsdf, *args, True, sigma, 64)
     band, free_hits, blocks, free_blocks = _ray_reference(origin, point, tsdf, behind, sigma)
-    data = tsdf.blocks()
+    data, got = _pool_sums(tsdf)
     assert {tuple(c) for c in data.coords} == blocks
     assert {tuple(c) for c in data.free_coords} == free_blocks
-    got = {}
-    for b, c in enumerate(data.coords):
-        for idx in zip(*np.nonzero(data.weight[b] > 0), strict=True):
-            g = tuple(np.asarray(c) * 8 + np.asarray(idx))
-            got[g] = (data.sdf[b][idx], data.weight[b][idx])
     assert set(got) == set(band)
     for g, (d, w) in band.items():
         assert got[g][1] == pytest.approx(w, abs=1e-5)
@@ -121,6 +170,48 @@ def test_fusion_of_one_ray_matches_numpy(ti_runtime):
             d, w = host.voxel_dw(np.array(g))
             assert w == free_hits[g]
             assert 0 < d <= tsdf.truncation_m + 1e-6
+    _check_scan_line(tsdf)
+
+
+def _check_scan_line(tsdf):
+    """Several points, some in one voxel in a row: their band sums are merged in registers
+    in runs of any length (3: a run starts inside the row), with the same result."""
+    import taichi as ti
+
+    from mcl3d.kernels import tsdf as k
+
+    origin = np.array([0.013, -0.021, 0.017])
+    c = np.array([2.05, 0.55, 0.35])  # a voxel centre
+    near_c = c + np.array([[0.02, 0.01, -0.02], [-0.03, 0.02, 0.0], [0.0, -0.02, 0.03],
+                           [0.03, 0.03, 0.01], [-0.01, -0.03, -0.02]])
+    points = [*near_c[:4], np.array([3.31, 1.17, 0.53]), np.array([1.2, 1.9, -0.35]),
+              near_c[4]]
+    behind, sigma = 0.2, 0.1
+    pts = np.array([p - origin for p in points], np.float32)
+    q = ti.math.vec4(0, 0, 0, 1)
+    t = ti.math.vec3(*origin)
+    args = (pts, np.zeros_like(pts), np.zeros(len(pts), np.float32), len(pts), q, t, q, t,
+            0.1, 100.0, 0.0, behind, False)
+    sums, free_hits, blocks, free_blocks = _scan_reference(origin, points, tsdf, behind, sigma)
+    assert len(sums) > 15 and len(free_hits) > 10 and free_blocks
+    for run_length in (1, 3, 64):
+        tsdf.clear()
+        tsdf.as_sums = True
+        k.scan_allocate(tsdf, *args)
+        tsdf.init_new_blocks(0, tsdf.requested_blocks)
+        k.scan_fuse(tsdf, *args, True, sigma, run_length)
+        data, got = _pool_sums(tsdf)
+        assert {tuple(b) for b in data.coords} == blocks
+        assert {tuple(b) for b in data.free_coords} == free_blocks
+        assert set(got) == set(sums)
+        for g, (wd, w) in sums.items():
+            assert got[g][1] == pytest.approx(w, abs=1e-5)
+            assert got[g][0] == pytest.approx(wd, abs=1e-5)
+        hits, counts = {}, tsdf.free_hits.to_numpy()
+        for b, cb in enumerate(data.coords):
+            for idx in zip(*np.nonzero(counts[b] > 0), strict=True):
+                hits[tuple(np.asarray(cb) * 8 + np.asarray(idx))] = counts[b][idx]
+        assert hits == free_hits
 
 
 def _query_map():
