@@ -13,9 +13,12 @@ Per correspondence (one voxel lookup, no distance threshold):
 chunk: the same numbers, fewer operations), so that error(δ) ≈ error + bᵀδ + ½ δᵀHδ
 (small_gicp's convention) and δ = −H⁻¹ b. Symmetric 3x3 matrices travel as their upper
 triangles: R C_A Rᵀ is one 6x6 product with a per-row basis, M an adjugate inverse, and the
-two symmetric blocks of H_c take 6 sums each. On cpu the per-point loops are branch-free so
-that LLVM vectorizes them: about 10 ns of cpu time per correspondence, some 40% of it reading
-the voxel table (key, then mean and covariance) and 12% the 3x3 inverse.
+two symmetric blocks of H_c take 6 sums each. Source covariances of the plane form
+C_A = αI + β nnᵀ (every plane-regularized or identity covariance; see batch_gicp.plane_form)
+travel as (n, α, β) instead, and R C_A Rᵀ = αI + β (Rn)(Rn)ᵀ costs 15 multiply-adds instead of
+36. On cpu the per-point loops are branch-free so that LLVM vectorizes them: about 8 ns of
+cpu time per correspondence (10,000 poses x 512 points: ~42 cpu-ms per iteration, from 52
+before the plane form and the home-slot split described in `linearize`).
 
 `linearize` runs over (row, chunk of source points) and adds each chunk's sums to its group
 atomically, so one pose uses many threads and 100,000 poses use them all the same way (a
@@ -27,7 +30,7 @@ Gauss-Newton or Levenberg-Marquardt acceptance and proposes the next candidate.
 import taichi as ti
 
 from mcl3d.kernels.se3 import pose_compose, pose_retract, quat_to_mat
-from mcl3d.kernels.voxel_hash import PROBE_ON, first_probe, lookup_from
+from mcl3d.kernels.voxel_hash import EMPTY, lookup_from, probe_slot
 
 vec3 = ti.math.vec3
 vec6 = ti.types.vector(6, ti.f32)
@@ -39,7 +42,7 @@ CONVERGED = 1
 NO_CORRESPONDENCES = 2
 STALLED = 3  # LM damping blew up without an accepted step: no descent direction left
 
-LOOKAHEAD = 64  # voxel lookups issued before their math (see linearize)
+LOOKAHEAD = 64  # points per block of linearize (home slots first, then the math)
 GN_DAMPING = 1e-6  # on the Jacobi-scaled system: conditioning only
 LM_MIN_LAMBDA = 1e-7
 LM_MAX_LAMBDA = 1e7
@@ -73,6 +76,21 @@ def rotated_cov_basis(R: ti.math.mat3):
 
 
 @ti.func
+def rotated_source_cov(R: ti.math.mat3, B, ca: vec6, plane: ti.template()) -> vec6:
+    """upper(R C_A Rᵀ) from the stored source covariance `ca`: upper(C_A) with the row's
+    basis B (rotated_cov_basis), or with `plane` (n, α, β) for C_A = αI + β nnᵀ."""
+    out = vec6(0.0)
+    if ti.static(plane):
+        rn = R @ vec3(ca[0], ca[1], ca[2])
+        bn = ca[4] * rn
+        out = vec6(ca[3] + bn[0] * rn[0], bn[0] * rn[1], bn[0] * rn[2],
+                   ca[3] + bn[1] * rn[1], bn[1] * rn[2], ca[3] + bn[2] * rn[2])
+    else:
+        out = B @ ca
+    return out
+
+
+@ti.func
 def sym_inverse(c: vec6, hit: ti.i32) -> vec6:
     """Upper triangle of the inverse of the symmetric 3x3 `c` (adjugate / determinant), or 0
     where `hit` is 0 (an outlier weighs nothing and never divides by 0)."""
@@ -80,6 +98,33 @@ def sym_inverse(c: vec6, hit: ti.i32) -> vec6:
              c[0] * c[5] - c[2] * c[2], c[1] * c[2] - c[0] * c[4], c[0] * c[3] - c[1] * c[1])
     det = c[0] * m[0] + c[1] * m[1] + c[2] * m[2]
     return m * (ti.select(hit, 1.0, 0.0) / ti.select(hit, det, 1.0))
+
+
+@ti.func
+def key_matches(key: ti.math.ivec3, cell: ti.math.ivec3) -> ti.i32:
+    return (key[0] == cell[0]) & (key[1] == cell[1]) & (key[2] == cell[2])
+
+
+@ti.func
+def point_terms(R: ti.math.mat3, B, q: vec3, t: vec3, mean: vec3, CB: ti.math.mat3, ca: vec6,
+                hit: ti.i32, plane: ti.template()):
+    """One correspondence's terms (all 0 unless `hit`): upper(hat(q)ᵀ M hat(q)), M hat(q),
+    upper(M), hat(q)ᵀ M e, M e and ½ eᵀ M e, with q = R μ_A, e = μ_B − q − t."""
+    M = sym_inverse(rotated_source_cov(R, B, ca, plane)
+                    + vec6(CB[0, 0], CB[0, 1], CB[0, 2], CB[1, 1], CB[1, 2], CB[2, 2]), hit)
+    e = mean - q - t
+    Me = vec3(M[0] * e[0] + M[1] * e[1] + M[2] * e[2],
+              M[1] * e[0] + M[3] * e[1] + M[4] * e[2],
+              M[2] * e[0] + M[4] * e[1] + M[5] * e[2])
+    # M hat(q), row i = (row i of M) x q
+    a0 = vec3(M[0], M[1], M[2]).cross(q)
+    a1 = vec3(M[1], M[3], M[4]).cross(q)
+    a2 = vec3(M[2], M[4], M[5]).cross(q)
+    # upper triangle of hat(q)ᵀ M hat(q) = −hat(q) (M hat(q))
+    rr = vec6(q[2] * a1[0] - q[1] * a2[0], q[2] * a1[1] - q[1] * a2[1],
+              q[2] * a1[2] - q[1] * a2[2], q[0] * a2[1] - q[2] * a0[1],
+              q[0] * a2[2] - q[2] * a0[2], q[1] * a0[2] - q[0] * a1[2])
+    return rr, ti.Matrix.rows([a0, a1, a2]), M, Me.cross(q), Me, 0.5 * e.dot(Me)
 
 
 @ti.func
@@ -94,9 +139,11 @@ def linearize(src_pts: ti.template(), src_cov: ti.template(), row_group: ti.temp
               chunk: ti.i32, num_chunks: ti.i32, q_cand: ti.template(), t_cand: ti.template(),
               status: ti.template(), vox: ti.template(), res: ti.template(), buckets: ti.i32,
               max_probes: ti.i32, acc_H: ti.template(), acc_b: ti.template(),
-              acc_e: ti.template(), acc_n: ti.template(), exclusive: ti.template()):
-    """`src_cov` holds upper(C_A) (see rotated_cov_basis). `exclusive`: every group has one
-    row and one chunk, so each task owns its group's sums and stores them without atomics."""
+              acc_e: ti.template(), acc_n: ti.template(), exclusive: ti.template(),
+              plane_cov: ti.template()):
+    """`src_cov` holds upper(C_A) (see rotated_cov_basis), or (n, α, β, 0) with `plane_cov`
+    (see rotated_source_cov). `exclusive`: every group has one row and one chunk, so each task
+    owns its group's sums and stores them without atomics."""
     for r, c in ti.ndrange(num_rows, num_chunks):
         g = row_group[r]
         begin = c * chunk
@@ -104,7 +151,9 @@ def linearize(src_pts: ti.template(), src_cov: ti.template(), row_group: ti.temp
             m = row_map[r]
             quat, t = pose_compose(row_q[r], row_t[r], q_cand[g], t_cand[g])
             R = quat_to_mat(quat)
-            B = rotated_cov_basis(R)
+            B = ti.Matrix.zero(ti.f32, 6, 6)
+            if ti.static(not plane_cov):
+                B = rotated_cov_basis(R)
             inv_res = 1.0 / res[m]
             # blocks of H_c = [[Σ hat(q)ᵀ M hat(q), −(Σ M hat(q))ᵀ], [−Σ M hat(q), Σ M]] and
             # b_c = [Σ hat(q)ᵀ M e, −Σ M e]: 21 sums (two symmetric blocks), no products by 0/1
@@ -118,49 +167,58 @@ def linearize(src_pts: ti.template(), src_cov: ti.template(), row_group: ti.temp
             first = row_start[r] + begin
             count = ti.min(chunk, row_count[r] - begin)
             for block in range((count + LOOKAHEAD - 1) // LOOKAHEAD):
-                # the first probe of every point of a block as one branch-free loop (it
-                # vectorizes; the pool is padded by LOOKAHEAD), the rare longer probes after it,
-                # then the math as a branch-free loop (outliers weigh 0) that vectorizes too
+                # three loops per block of points (the pool is padded by LOOKAHEAD): the home
+                # slots (arithmetic only), then the math with the key check against the home
+                # slot's key, read with its mean and covariance (one cache line; a miss or
+                # another key weighs 0), both branch-free so that they vectorize; last the rare
+                # points whose home slot holds another key probe on. Computing the slots
+                # apart, before any table read, is what keeps the reads cheap (~15% faster).
                 slots = ti.Vector.zero(ti.i32, LOOKAHEAD)
-                probe_on = 0
+                for j in range(LOOKAHEAD):
+                    p = R @ src_pts[first + block * LOOKAHEAD + j] + t
+                    slots[j] = probe_slot(ti.cast(ti.floor(p * inv_res), ti.i32), 0, m, buckets)
+                probe_on = ti.Vector.zero(ti.i32, LOOKAHEAD)
+                num_probe_on = 0
                 for j in range(LOOKAHEAD):
                     kk = block * LOOKAHEAD + j
-                    cell = ti.cast(ti.floor((R @ src_pts[first + kk] + t) * inv_res), ti.i32)
-                    slot = ti.select(kk < count, first_probe(vox, cell, m, buckets), -1)
-                    slots[j] = slot
-                    probe_on += ti.select(slot == PROBE_ON, 1, 0)
-                if probe_on > 0:
-                    for j in range(LOOKAHEAD):
-                        if slots[j] == PROBE_ON:
-                            p = R @ src_pts[first + block * LOOKAHEAD + j] + t
-                            slots[j] = lookup_from(vox, ti.cast(ti.floor(p * inv_res), ti.i32),
-                                                   1, m, buckets, max_probes)
-                for j in range(LOOKAHEAD):
-                    k = first + block * LOOKAHEAD + j
-                    hit = slots[j] >= 0
-                    s = ti.max(slots[j], 0)
+                    k = first + kk
+                    s = slots[j]
                     q = R @ src_pts[k]
-                    CB = vox[s].cov
-                    M = sym_inverse(B @ src_cov[k] + vec6(CB[0, 0], CB[0, 1], CB[0, 2],
-                                                          CB[1, 1], CB[1, 2], CB[2, 2]), hit)
-                    e = vox[s].mean - q - t
-                    Me = vec3(M[0] * e[0] + M[1] * e[1] + M[2] * e[2],
-                              M[1] * e[0] + M[3] * e[1] + M[4] * e[2],
-                              M[2] * e[0] + M[4] * e[1] + M[5] * e[2])
-                    # M hat(q), row i = (row i of M) x q
-                    a0 = vec3(M[0], M[1], M[2]).cross(q)
-                    a1 = vec3(M[1], M[3], M[4]).cross(q)
-                    a2 = vec3(M[2], M[4], M[5]).cross(q)
-                    S_tr += ti.Matrix.rows([a0, a1, a2])
-                    # upper triangle of hat(q)ᵀ M hat(q) = −hat(q) (M hat(q))
-                    S_rr += vec6(q[2] * a1[0] - q[1] * a2[0], q[2] * a1[1] - q[1] * a2[1],
-                                 q[2] * a1[2] - q[1] * a2[2], q[0] * a2[1] - q[2] * a0[1],
-                                 q[0] * a2[2] - q[2] * a0[2], q[1] * a0[2] - q[0] * a1[2])
-                    S_tt += M
-                    b_r += Me.cross(q)  # hat(q)ᵀ M e
-                    b_t += Me
-                    err += 0.5 * e.dot(Me)
+                    key = vox[s].key
+                    found = key_matches(key, ti.cast(ti.floor((q + t) * inv_res), ti.i32))
+                    occupied = vox[s].state != EMPTY
+                    valid = kk < count
+                    on = valid & occupied & ~found
+                    probe_on[j] = ti.select(on, 1, 0)
+                    num_probe_on += ti.select(on, 1, 0)
+                    hit = valid & occupied & found
+                    rr, tr, tt, br, bt, ee = point_terms(R, B, q, t, vox[s].mean, vox[s].cov,
+                                                         src_cov[k], hit, plane_cov)
+                    S_rr += rr
+                    S_tr += tr
+                    S_tt += tt
+                    b_r += br
+                    b_t += bt
+                    err += ee
                     n += ti.select(hit, 1, 0)
+                if num_probe_on > 0:
+                    for j in range(LOOKAHEAD):
+                        if probe_on[j]:
+                            k = first + block * LOOKAHEAD + j
+                            q = R @ src_pts[k]
+                            s = lookup_from(vox, ti.cast(ti.floor((q + t) * inv_res), ti.i32), 1,
+                                            m, buckets, max_probes)
+                            if s >= 0:
+                                rr, tr, tt, br, bt, ee = point_terms(
+                                    R, B, q, t, vox[s].mean, vox[s].cov, src_cov[k], True,
+                                    plane_cov)
+                                S_rr += rr
+                                S_tr += tr
+                                S_tt += tt
+                                b_r += br
+                                b_t += bt
+                                err += ee
+                                n += 1
             if n > 0:
                 H = ti.Matrix.zero(ti.f32, 6, 6)
                 b = ti.Vector.zero(ti.f32, 6)
@@ -242,13 +300,16 @@ def step(num_groups: ti.i32, use_lm: ti.i32, rot_eps: ti.f32, trans_eps: ti.f32,
          t_cand: ti.template(), lam: ti.template(), status: ti.template(),
          iters: ti.template(), acc_H: ti.template(), acc_b: ti.template(),
          acc_e: ti.template(), acc_n: ti.template(), best_H: ti.template(),
-         best_b: ti.template(), best_e: ti.template(), best_n: ti.template()) -> ti.i32:
+         best_b: ti.template(), best_e: ti.template(), best_n: ti.template(),
+         serial: ti.template()) -> ti.i32:
     """Accept or reject each running group's candidate, then propose the next one.
 
     The first linearization (iters == 0) is always accepted; Gauss-Newton accepts every
     candidate; LM accepts one whose error does not grow (λ /= 10), else retries with λ *= 10.
-    Returns the number of groups still running."""
+    Returns the number of groups still running. `serial` (few groups) stays on the calling
+    thread: waking the thread pool costs more than the work, much more on a busy machine."""
     running = 0
+    ti.loop_config(serialize=serial)
     for g in range(num_groups):
         if status[g] == RUNNING:
             n = acc_n[g]
@@ -293,9 +354,10 @@ def reset_groups(num_groups: ti.i32, lm_lambda: ti.f32, q_cur: ti.template(),
                  t_cur: ti.template(), q_cand: ti.template(), t_cand: ti.template(),
                  lam: ti.template(), status: ti.template(), iters: ti.template(),
                  acc_H: ti.template(), acc_b: ti.template(), acc_e: ti.template(),
-                 acc_n: ti.template(), best_n: ti.template()):
+                 acc_n: ti.template(), best_n: ti.template(), serial: ti.template()):
     """Start every group at its uploaded candidate pose (the first step accepts it, and
-    divides λ by 10, hence the factor)."""
+    divides λ by 10, hence the factor). `serial` as in `step`."""
+    ti.loop_config(serialize=serial)
     for g in range(num_groups):
         q_cur[g] = q_cand[g]
         t_cur[g] = t_cand[g]
@@ -307,3 +369,64 @@ def reset_groups(num_groups: ti.i32, lm_lambda: ti.f32, q_cur: ti.template(),
         acc_e[g] = 0.0
         acc_n[g] = 0
         best_n[g] = 0
+
+
+@ti.kernel
+def upload_source(src: ti.types.ndarray(), n: ti.i32, src_pts: ti.template(),
+                  src_cov: ti.template()):
+    """Rows (x, y, z, c0..c5) into the source pool: one launch instead of two, on the calling
+    thread (a copy gains nothing from waking the pool, and loses much on a busy machine)."""
+    ti.loop_config(serialize=True)
+    for i in range(n):
+        src_pts[i] = vec3(src[i, 0], src[i, 1], src[i, 2])
+        for a in ti.static(range(6)):
+            src_cov[i][a] = src[i, 3 + a]
+
+
+@ti.kernel
+def upload_problem(rows_i: ti.types.ndarray(), rows_f: ti.types.ndarray(), num_rows: ti.i32,
+                   poses: ti.types.ndarray(), num_groups: ti.i32, row_group: ti.template(),
+                   row_map: ti.template(), row_start: ti.template(), row_count: ti.template(),
+                   row_q: ti.template(), row_t: ti.template(), q_cand: ti.template(),
+                   t_cand: ti.template()):
+    """Rows (group, map, start, count | q, t of the left pose) and the initial poses (q, t):
+    one launch instead of eight, on the calling thread, which matters per scan (odometry)
+    on a busy machine."""
+    ti.loop_config(serialize=True)
+    for r in range(num_rows):
+        row_group[r] = rows_i[r, 0]
+        row_map[r] = rows_i[r, 1]
+        row_start[r] = rows_i[r, 2]
+        row_count[r] = rows_i[r, 3]
+        row_q[r] = ti.math.vec4(rows_f[r, 0], rows_f[r, 1], rows_f[r, 2], rows_f[r, 3])
+        row_t[r] = vec3(rows_f[r, 4], rows_f[r, 5], rows_f[r, 6])
+    ti.loop_config(serialize=True)
+    for g in range(num_groups):
+        q_cand[g] = ti.math.vec4(poses[g, 0], poses[g, 1], poses[g, 2], poses[g, 3])
+        t_cand[g] = vec3(poses[g, 4], poses[g, 5], poses[g, 6])
+
+
+RESULT_COLUMNS = 53  # q (4), t (3), H (36), b (6), error, inliers, iterations, status
+
+
+@ti.kernel
+def download_results(num_groups: ti.i32, q_cur: ti.template(), t_cur: ti.template(),
+                     best_H: ti.template(), best_b: ti.template(), best_e: ti.template(),
+                     best_n: ti.template(), iters: ti.template(), status: ti.template(),
+                     out: ti.types.ndarray()):
+    """Every group's result as one f32 row (counts stay exact below 2^24): one launch
+    instead of eight field reads, on the calling thread."""
+    ti.loop_config(serialize=True)
+    for g in range(num_groups):
+        for a in ti.static(range(4)):
+            out[g, a] = q_cur[g][a]
+        for a in ti.static(range(3)):
+            out[g, 4 + a] = t_cur[g][a]
+        for a in ti.static(range(6)):
+            out[g, 43 + a] = best_b[g][a]
+            for b in ti.static(range(6)):
+                out[g, 7 + 6 * a + b] = best_H[g][a, b]
+        out[g, 49] = best_e[g]
+        out[g, 50] = ti.cast(best_n[g], ti.f32)
+        out[g, 51] = ti.cast(iters[g], ti.f32)
+        out[g, 52] = ti.cast(status[g], ti.f32)

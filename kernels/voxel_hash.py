@@ -26,7 +26,6 @@ mat3 = ti.math.mat3
 
 EMPTY = 0
 OCCUPIED = 1
-PROBE_ON = -2  # first_probe: the first slot holds another key, probe on
 
 Voxel = ti.types.struct(key=ivec3, state=ti.i32, mean=vec3, cov=mat3)
 
@@ -83,17 +82,6 @@ def lookup(vox: ti.template(), c: ivec3, map_id: ti.i32, buckets: ti.i32,
            max_probes: ti.i32) -> ti.i32:
     """Slot of voxel `c` in map `map_id`, or -1 when the voxel is not in the map."""
     return lookup_from(vox, c, 0, map_id, buckets, max_probes)
-
-
-@ti.func
-def first_probe(vox: ti.template(), c: ivec3, map_id: ti.i32, buckets: ti.i32) -> ti.i32:
-    """Branch-free first probe (vectorizes over a loop of points): the slot of `c`, -1 when
-    `c` is absent, PROBE_ON when another key sits there (`lookup_from(..., 1, ...)` decides)."""
-    s = probe_slot(c, 0, map_id, buckets)
-    key = vox[s].key
-    state = vox[s].state
-    hit = (state != EMPTY) & (key[0] == c[0]) & (key[1] == c[1]) & (key[2] == c[2])
-    return ti.select(hit, s, ti.select(state == EMPTY, -1, PROBE_ON))
 
 
 @ti.kernel

@@ -17,6 +17,52 @@ from mcl3d.gaussian_voxels import GaussianVoxelMaps, check_points
 from mcl3d.geometry import quat_to_rot, rot_to_quat, se3
 
 STATUS_NAMES = ("running", "converged", "no correspondences", "stalled")
+SERIAL_GROUPS = 64  # fewer poses: solve and reset them on the calling thread
+PLANE_FORM_RTOL = 1e-6  # what plane_form may change of a covariance, relative to its largest entry
+
+
+def plane_form(covs: np.ndarray) -> np.ndarray | None:
+    """(N, 6) rows (n, α, β, 0) with covs[i] = α I + β n nᵀ (unit n), or None when some
+    covariance is not of that form (three distinct eigenvalues).
+
+    Plane-regularized covariances (eigenvalues ε, 1, 1) and identities are, and the GICP kernel
+    rotates them for less than half the cost of a general one. Closed-form eigenvalues on the
+    six unique entries keep this cheap enough for every scan (numpy's eigh is ~1 µs a matrix).
+    """
+    xx, yy, zz = covs[:, 0, 0], covs[:, 1, 1], covs[:, 2, 2]
+    xy = 0.5 * (covs[:, 0, 1] + covs[:, 1, 0])
+    xz = 0.5 * (covs[:, 0, 2] + covs[:, 2, 0])
+    yz = 0.5 * (covs[:, 1, 2] + covs[:, 2, 1])
+    q = (xx + yy + zz) / 3.0
+    dx, dy, dz = xx - q, yy - q, zz - q
+    p = np.sqrt((dx * dx + dy * dy + dz * dz + 2 * (xy * xy + xz * xz + yz * yz)) / 6.0)
+    det = dx * (dy * dz - yz * yz) - xy * (xy * dz - yz * xz) + xz * (xy * yz - dy * xz)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = np.where(p > 0, det / (2 * p ** 3), 1.0)
+    phi = np.arccos(np.clip(r, -1.0, 1.0)) / 3.0
+    hi = q + 2 * p * np.cos(phi)
+    lo = q + 2 * p * np.cos(phi + 2 * np.pi / 3)
+    mid = 3 * q - hi - lo
+    low_pair = mid - lo < hi - mid  # the two equal eigenvalues are (lo, mid), else (mid, hi)
+    alpha = np.where(low_pair, 0.5 * (lo + mid), 0.5 * (mid + hi))
+    beta = np.where(low_pair, hi, lo) - alpha
+    # C - αI = β n nᵀ: n from its column with the largest diagonal entry
+    dxx, dyy, dzz = xx - alpha, yy - alpha, zz - alpha
+    pick_x = (np.abs(dxx) >= np.abs(dyy)) & (np.abs(dxx) >= np.abs(dzz))
+    pick_y = ~pick_x & (np.abs(dyy) >= np.abs(dzz))
+    n = np.where(pick_x[:, None], np.stack([dxx, xy, xz], 1),
+                 np.where(pick_y[:, None], np.stack([xy, dyy, yz], 1), np.stack([xz, yz, dzz], 1)))
+    norm = np.sqrt((n * n).sum(axis=1))
+    n = np.where(norm[:, None] > 0, n / np.where(norm > 0, norm, 1.0)[:, None], [1.0, 0.0, 0.0])
+    nx, ny, nz = n[:, 0], n[:, 1], n[:, 2]
+    entries = ((xx, alpha + beta * nx * nx), (yy, alpha + beta * ny * ny),
+               (zz, alpha + beta * nz * nz), (xy, beta * nx * ny), (xz, beta * nx * nz),
+               (yz, beta * ny * nz))
+    scale = np.maximum.reduce([np.abs(c) for c, _ in entries])
+    worst = np.maximum.reduce([np.abs(c - r) for c, r in entries])
+    if not (worst <= PLANE_FORM_RTOL * scale).all():
+        return None
+    return np.c_[n, alpha, beta, np.zeros(len(covs))]
 
 
 @dataclass
@@ -80,10 +126,12 @@ class BatchGicp:
         self.best_e = ti.field(ti.f32, G)
         self.best_n = ti.field(ti.i32, G)
         self.num_source = 0
+        self.plane_covs = False  # src_cov rows hold (n, α, β, 0), see plane_form
 
     def set_source(self, points: np.ndarray, covs: np.ndarray) -> None:
-        """Upload the source pool (points in the source frame, covariances (N, 3, 3))."""
-        from mcl3d.kernels import upload
+        """Upload the source pool (points in the source frame, covariances (N, 3, 3)).
+        Covariances of the form αI + βnnᵀ (all plane-regularized ones) take the faster path."""
+        from mcl3d.kernels import gicp
 
         pts = check_points(points, "source points")
         covs = np.asarray(covs, dtype=np.float64)
@@ -93,10 +141,14 @@ class BatchGicp:
         if len(pts) > self.max_source_points:
             raise ConfigError(f"source has {len(pts)} points; this GICP holds at most "
                               f"{self.max_source_points} (downsample more or raise the capacity)")
-        upload.vector_rows(np.ascontiguousarray(pts, np.float32), len(pts), self.src_pts)
-        iu, ju = np.triu_indices(3)
-        upper = 0.5 * (covs[:, iu, ju] + covs[:, ju, iu])
-        upload.vector_rows(np.ascontiguousarray(upper, np.float32), len(pts), self.src_cov)
+        rows = plane_form(covs)
+        self.plane_covs = rows is not None
+        if rows is None:
+            iu, ju = np.triu_indices(3)
+            rows = 0.5 * (covs[:, iu, ju] + covs[:, ju, iu])
+        if len(pts):
+            gicp.upload_source(np.ascontiguousarray(np.c_[pts, rows], np.float32), len(pts),
+                               self.src_pts, self.src_cov)
         self.num_source = len(pts)
 
     def set_problem(self, T_init: np.ndarray, row_group: np.ndarray, row_map: np.ndarray,
@@ -104,7 +156,7 @@ class BatchGicp:
                     row_count: np.ndarray | None = None, lm_lambda: float = 1e-3) -> int:
         """Upload initial poses (G, 4, 4) and rows; row r registers source points
         [row_start, row_start + row_count) into map row_map[r] at pose T_left[r] @ T[group]."""
-        from mcl3d.kernels import upload
+        from mcl3d.kernels import gicp
 
         T_init = np.asarray(T_init, dtype=np.float64).reshape(-1, 4, 4)
         G = len(T_init)
@@ -128,14 +180,14 @@ class BatchGicp:
                  else np.asarray(row_count, np.int32))
         if (start < 0).any() or (start + count > self.num_source).any():
             raise ConfigError(f"row point ranges exceed the {self.num_source} source points")
-        upload.scalar_rows(row_group, R, self.row_group)
-        upload.scalar_rows(row_map, R, self.row_map)
-        upload.scalar_rows(np.ascontiguousarray(start), R, self.row_start)
-        upload.scalar_rows(np.ascontiguousarray(count), R, self.row_count)
-        upload.vector_rows(rot_to_quat(T_left[:, :3, :3]).astype(np.float32), R, self.row_q)
-        upload.vector_rows(np.ascontiguousarray(T_left[:, :3, 3], np.float32), R, self.row_t)
-        upload.vector_rows(rot_to_quat(T_init[:, :3, :3]).astype(np.float32), G, self.q_cand)
-        upload.vector_rows(np.ascontiguousarray(T_init[:, :3, 3], np.float32), G, self.t_cand)
+        rows_i = np.ascontiguousarray(np.c_[row_group, row_map, start, count], np.int32)
+        rows_f = np.ascontiguousarray(np.c_[rot_to_quat(T_left[:, :3, :3]), T_left[:, :3, 3]],
+                                      np.float32)
+        poses = np.ascontiguousarray(np.c_[rot_to_quat(T_init[:, :3, :3]), T_init[:, :3, 3]],
+                                     np.float32)
+        gicp.upload_problem(rows_i, rows_f, R, poses, G, self.row_group, self.row_map,
+                            self.row_start, self.row_count, self.row_q, self.row_t,
+                            self.q_cand, self.t_cand)
         self.start(G, R, int(count.max()), lm_lambda,
                    one_row_per_group=len(np.unique(row_group)) == R)
         return G
@@ -152,7 +204,8 @@ class BatchGicp:
             raise ConfigError(f"{num_groups} poses and {num_rows} rows do not fit this GICP")
         gicp.reset_groups(num_groups, lm_lambda, self.q_cur, self.t_cur, self.q_cand,
                           self.t_cand, self.lam, self.status, self.iters, self.acc_H,
-                          self.acc_b, self.acc_e, self.acc_n, self.best_n)
+                          self.acc_b, self.acc_e, self.acc_n, self.best_n,
+                          num_groups < SERIAL_GROUPS)
         self._rows, self._groups, self._max_count = num_rows, num_groups, max_row_points
         self._one_row_per_group = one_row_per_group
 
@@ -176,11 +229,13 @@ class BatchGicp:
                        self.row_t, self.row_start, self.row_count, self._rows, chunk,
                        num_chunks, self.q_cand, self.t_cand, self.status, maps.vox, maps.res,
                        maps.buckets, maps.max_probes, self.acc_H, self.acc_b, self.acc_e,
-                       self.acc_n, self._one_row_per_group and num_chunks == 1)
+                       self.acc_n, self._one_row_per_group and num_chunks == 1,
+                       self.plane_covs)
         return gicp.step(self._groups, int(use_lm), rotation_eps_rad, translation_eps_m,
                          self.q_cur, self.t_cur, self.q_cand, self.t_cand, self.lam,
                          self.status, self.iters, self.acc_H, self.acc_b, self.acc_e,
-                         self.acc_n, self.best_H, self.best_b, self.best_e, self.best_n)
+                         self.acc_n, self.best_H, self.best_b, self.best_e, self.best_n,
+                         self._groups < SERIAL_GROUPS)
 
     def optimize(self, max_iterations: int = 20, use_lm: bool = False,
                  rotation_eps_rad: float = 1e-3 * np.pi / 180,
@@ -195,15 +250,19 @@ class BatchGicp:
         return self.result()
 
     def result(self) -> BatchResult:
+        from mcl3d.kernels import gicp
+
         G = self._groups
-        q = self.q_cur.to_numpy()[:G].astype(np.float64)
-        t = self.t_cur.to_numpy()[:G].astype(np.float64)
+        out = np.empty((G, gicp.RESULT_COLUMNS), np.float32)
+        gicp.download_results(G, self.q_cur, self.t_cur, self.best_H, self.best_b, self.best_e,
+                              self.best_n, self.iters, self.status, out)
+        out = out.astype(np.float64)
         return BatchResult(
-            T=se3(quat_to_rot(q), t),
-            H=self.best_H.to_numpy()[:G].astype(np.float64),
-            b=self.best_b.to_numpy()[:G].astype(np.float64),
-            error=self.best_e.to_numpy()[:G].astype(np.float64),
-            num_inliers=self.best_n.to_numpy()[:G].astype(np.int64),
-            iterations=self.iters.to_numpy()[:G].astype(np.int64),
-            status=self.status.to_numpy()[:G].astype(np.int64),
+            T=se3(quat_to_rot(out[:, :4]), out[:, 4:7]),
+            H=out[:, 7:43].reshape(G, 6, 6),
+            b=out[:, 43:49],
+            error=out[:, 49],
+            num_inliers=out[:, 50].astype(np.int64),
+            iterations=out[:, 51].astype(np.int64),
+            status=out[:, 52].astype(np.int64),
         )

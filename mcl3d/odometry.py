@@ -129,6 +129,11 @@ class Odometry:
         self.gicp = BatchGicp(self.maps, max_groups=1,
                               max_rows=cfg.max_keyframes * cfg.map_levels,
                               max_source_points=cfg.max_points)
+        self.reset(T_lidar_imu)
+
+    def reset(self, T_lidar_imu: np.ndarray | None = None) -> None:
+        """Start over (a new log, with its IMU extrinsic) and keep the device fields: they
+        are sized once, and a keyframe's maps are cleared when it is (re)inserted."""
         self.T_lidar_imu = np.eye(4) if T_lidar_imu is None else np.asarray(T_lidar_imu)
         self.keyframes: list[tuple[int, np.ndarray]] = []  # (slot, T_world_keyframe)
         self.next_slot = 0

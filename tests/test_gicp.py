@@ -324,3 +324,53 @@ def test_chunked_and_whole_row_linearizations_agree(problem):
     np.testing.assert_allclose(a.error, b.error, rtol=1e-5)
     np.testing.assert_allclose(a.b, b.b, rtol=1e-4, atol=1e-5 * np.abs(a.b).max())
     np.testing.assert_allclose(a.H, b.H, rtol=1e-4, atol=1e-5 * np.abs(a.H).max())
+
+
+def test_plane_form_rebuilds_plane_covariances_and_rejects_others():
+    from mcl3d.batch_gicp import plane_form
+
+    rng = np.random.default_rng(14)
+    n = rng.normal(size=(50, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    plane = np.eye(3) - (1 - 1e-3) * n[:, :, None] * n[:, None]
+    line = 0.01 * np.eye(3) + 2.0 * n[:, :, None] * n[:, None]  # one large eigenvalue
+    covs = np.concatenate([plane, line, 3.0 * np.eye(3)[None], np.zeros((1, 3, 3))])
+    rows = plane_form(covs.astype(np.float32).astype(np.float64))
+    assert rows is not None and rows.shape == (len(covs), 6)
+    nn, alpha, beta = rows[:, :3], rows[:, 3], rows[:, 4]
+    rebuilt = alpha[:, None, None] * np.eye(3) + beta[:, None, None] * nn[:, :, None] * nn[:, None]
+    np.testing.assert_allclose(rebuilt, covs, atol=1e-6)
+    np.testing.assert_allclose(np.linalg.norm(nn, axis=1), 1.0, atol=1e-12)
+    G = rng.normal(size=(3, 3))
+    assert plane_form(np.concatenate([covs, (G @ G.T)[None]])) is None  # 3 distinct eigenvalues
+
+
+def test_general_source_covariances_take_the_general_path_and_match_numpy(ti_runtime):
+    """Source covariances that are not αI + βnnᵀ use the per-row rotation basis; plane ones the
+    (n, α, β) form. Both give NumPy's H, b, error and inliers."""
+    from mcl3d.batch_gicp import BatchGicp
+    from mcl3d.gaussian_voxels import GaussianVoxelMaps
+
+    target, target_covs = corner_world(np.random.default_rng(7))
+    source, plane_covs = corner_world(np.random.default_rng(8), 60)
+    G = np.random.default_rng(15).normal(size=(len(source), 3, 3))
+    general_covs = 0.2 * G @ np.swapaxes(G, 1, 2) + 0.05 * np.eye(3)
+    vox = reference_voxels(target, target_covs)
+    maps = GaussianVoxelMaps(max_maps=1, buckets_per_map=1 << 9, max_points=1024)
+    maps.clear(0, RES)
+    maps.insert(0, target, target_covs)
+    gicp = BatchGicp(maps, max_groups=2, max_source_points=512)
+    rng = np.random.default_rng(16)
+    poses = np.stack([se3(so3_exp(0.05 * rng.normal(size=3)), 0.1 * rng.normal(size=3))
+                      for _ in range(2)])
+    for covs, plane in ((general_covs, False), (plane_covs, True)):
+        gicp.set_source(source, covs)
+        assert gicp.plane_covs == plane
+        gicp.set_problem(poses, row_group=np.arange(2), row_map=np.zeros(2))
+        out = gicp.optimize(max_iterations=1)
+        for k, T in enumerate(poses):
+            H, b, err, n = reference_linearize(vox, source, covs, T)
+            assert out.num_inliers[k] == n > 100
+            np.testing.assert_allclose(out.error[k], err, rtol=1e-4)
+            np.testing.assert_allclose(out.b[k], b, rtol=1e-3, atol=1e-3 * np.abs(b).max())
+            np.testing.assert_allclose(out.H[k], H, rtol=1e-3, atol=1e-4 * np.abs(H).max())

@@ -55,6 +55,18 @@ def test_room_motion_is_tracked_and_a_corridor_is_flagged(odometry):
                for w in frame.warnings)
 
 
+def test_reset_starts_a_new_log_on_the_same_fields(odometry):
+    rng = np.random.default_rng(2)
+    room = box_scan(rng, 6.0)
+    moved = transform_points(np.linalg.inv(se3(so3_exp([0, 0, 0.05]), [0.2, 0.1, 0.0])),
+                             box_scan(rng, 6.0))
+    before = [odometry.step(room, None, 0), odometry.step(moved, None, 100_000_000)]
+    odometry.reset()
+    again = [odometry.step(room, None, 0), odometry.step(moved, None, 100_000_000)]
+    assert again[0].keyframe and len(odometry.frames) == 2
+    np.testing.assert_allclose(again[1].T_world_lidar, before[1].T_world_lidar, atol=1e-5)
+
+
 def test_empty_scan_is_reported_not_silently_wrong(odometry):
     from mcl3d.odometry import LOST_COVARIANCE
 
