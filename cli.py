@@ -459,7 +459,7 @@ def localize(
     """6-DoF Monte Carlo localization of a log in a TSDF map (global or tracking)."""
     from mcl3d import config as config_mod
     from mcl3d.console import console, make_progress, summary_table
-    from mcl3d.localize import LocalizeConfig, Topics, run
+    from mcl3d.localize import LocalizeConfig, Topics, run, summary_rows
 
     if motion is not None and motion not in ("auto", "odom", "imu", "constant_velocity"):
         raise typer.BadParameter("--motion must be auto, odom, imu or constant_velocity")
@@ -481,25 +481,7 @@ def localize(
                      force=force, result_mcap=result_mcap, backend=info.requested,
                      on_progress=on_progress)
     s = result.summary
-    rows = [("scans", f"{s['scans']} ({s['skipped_scans']} skipped)"),
-            ("backend", f"{s['backend']} ({s['device']})"),
-            ("particles x points", f"{s['particles']:,} x {s['points']}"),
-            ("init / motion", f"{s['init']} / {s['motion_source']}"),
-            ("converged", "never" if s["converged_at_scan"] is None else
-             f"at scan {s['converged_at_scan']} ({s['converged_after_s']:.1f} s)"),
-            ("final state", s["final_state"])]
-    for key, label in (("ate_all", "ATE all scans"),
-                       ("ate_after_convergence", "ATE after convergence")):
-        if key in s:
-            e = s[key]
-            rows.append((label, f"{e['translation_rmse_m']:.3f} m RMSE (max "
-                                f"{e['translation_max_m']:.3f}), {e['rotation_rmse_deg']:.2f} "
-                                f"deg RMSE"))
-    ms = s["ms_per_update"]
-    rows.append(("ms per update", f"{ms['total']:.1f} = " + " + ".join(
-        f"{k} {v:.1f}" for k, v in ms.items() if k != "total")))
-    rows.append(("outputs", str(out)))
-    console.print(summary_table("Localization", rows))
+    console.print(summary_table("Localization", summary_rows(s, out)))
     for w in s["warnings"][:5]:
         console.print(f"[yellow]warning:[/] {w}")
 
@@ -509,14 +491,21 @@ def demo(
     root: Annotated[Path, typer.Option(
         "-o", "--output", help="Folder for the demo runs; each run gets a new timestamped "
                                "subfolder and `latest` points at it.")] = Path("demo"),
-    seed: Annotated[int, typer.Option("--seed", help="Seed of the simulated log.")] = 0,
+    seed: Annotated[int, typer.Option("--seed", help="Seed of the simulated log and of the "
+                                               "particle filter.")] = 0,
+    duration: Annotated[float, typer.Option(help="Seconds of log to simulate.")] = 8.0,
+    particles: Annotated[int, typer.Option(help="Particles for global localization.")] = 100_000,
+    points: Annotated[int | None, typer.Option(
+        help="Scan points per update (default 256).")] = None,
     backend: BackendOption = None,
 ) -> None:
-    """Run the chain on built-in demo data: simulate an office log, inspect it, map it."""
+    """Run the chain on built-in demo data: simulate an office log, inspect it, map it,
+    localize it globally in its map and compare with the ground truth."""
     from mcl3d.console import console
     from mcl3d.demo import DemoRequest, steps
 
-    request = DemoRequest(root=root, seed=seed, backend=backend or _Globals.backend)
+    request = DemoRequest(root=root, seed=seed, duration_s=duration, particles=particles,
+                          points=points, backend=backend or _Globals.backend)
     for number, step in enumerate(steps(request), start=1):
         console.rule(f"[bold]{number}. {step.title}")
         console.print(f"[dim]$ {step.command}")
@@ -586,3 +575,4 @@ def odometry(
         console.print(f"[yellow]warning:[/] {w}")
     if s["num_warnings"] > 5:
         console.print(f"[yellow]... {s['num_warnings'] - 5} more warnings in the summary[/]")
+

@@ -16,6 +16,7 @@ Data: a simulated office log and its 5 cm map, made with `mcl3d simulate` and
 `mcl3d build-map` into --cache-dir unless --log/--map are given.
 
     python bench/bench_localize.py [--quick] [--backend cpu] [--json bench_localize.json]
+    python bench/bench_localize.py --n 1000000 --m 256 1024 --no-f16   # a part of the grid
 """
 
 from __future__ import annotations
@@ -135,6 +136,9 @@ def main() -> None:
     ap.add_argument("--map", type=Path)
     ap.add_argument("--cache-dir", type=Path, default=Path("/tmp/mcl3d-bench"))
     ap.add_argument("--quick", action="store_true", help="N in 10k, 100k; M in 256, 512")
+    ap.add_argument("--n", type=int, nargs="+", help="particle counts (default 10k 100k 1M)")
+    ap.add_argument("--m", type=int, nargs="+", help="scan points (default 256 512 1024)")
+    ap.add_argument("--no-f16", action="store_true", help="skip the f16-map comparison")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--numpy-subset", type=int, default=5000)
     ap.add_argument("--json", type=Path, default=Path("bench_localize.json"))
@@ -150,11 +154,11 @@ def main() -> None:
     log, map_path = ensure_data(args.cache_dir, args.log, args.map)
     info = runtime.init(args.backend)
     scan, T = first_scan(log)
-    ns = [10_000, 100_000] if args.quick else [10_000, 100_000, 1_000_000]
-    ms = [256, 512] if args.quick else [256, 512, 1024]
+    ns = args.n or ([10_000, 100_000] if args.quick else [10_000, 100_000, 1_000_000])
+    ms = args.m or ([256, 512] if args.quick else [256, 512, 1024])
     results = {"backend": info.backend, "device": info.device, "log": str(log),
                "map": str(map_path), "cases": [], "f16": []}
-    for f16 in (False, True):
+    for f16 in (False,) if args.no_f16 else (False, True):
         tsdf = load_map(map_path, f16=f16)
         host = HostMap.of(tsdf)
         for n in ns:
@@ -166,6 +170,7 @@ def main() -> None:
                 (results["f16"] if f16 else results["cases"]).append(case)
                 print(json.dumps({k: case[k] for k in ("N", "M", "update_ms",
                                                        "throughput_pp_per_s")}), flush=True)
+                args.json.write_text(json.dumps(results, indent=2))  # a crash keeps the rows
         tsdf.destroy()
     table = Table(title=f"MCL update on {info.backend} ({info.device})")
     for col in ("N", "M", "map", "motion", "likelihood", "weights", "estimate", "resample",
@@ -181,7 +186,7 @@ def main() -> None:
                       f"{c['likelihood_kernel_ms']['cached_block']:.1f}",
                       f"{c['throughput_pp_per_s']:.2e}", f"{c['numpy_ms_extrapolated']:.0f}",
                       f"{c['ratio_taichi_vs_numpy']:.1f}")
-    Console().print(table)
+    Console(width=max(Console().width, 160)).print(table)
     args.json.write_text(json.dumps(results, indent=2))
     print(f"wrote {args.json}")
 

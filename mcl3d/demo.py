@@ -1,5 +1,6 @@
 """`mcl3d demo`: the whole chain on built-in data that the simulator makes on the spot:
-simulate an office log, inspect it, build its TSDF map.
+simulate an office log, inspect it, build its TSDF map, then localize the log in that map
+globally (no initial guess) and compare with the log's ground truth.
 
 Each run writes into a fresh `<root>/<UTC time>/` folder (and points `<root>/latest` at it),
 so running the demo again never overwrites an earlier result.
@@ -8,6 +9,7 @@ so running the demo again never overwrites an earlier result.
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import time
 from dataclasses import dataclass
@@ -15,7 +17,7 @@ from pathlib import Path
 
 from rich.console import RenderableType
 
-from mcl3d.errors import OutputExistsError
+from mcl3d.errors import ConfigError, OutputExistsError
 
 
 @dataclass(frozen=True)
@@ -25,6 +27,14 @@ class DemoRequest:
     duration_s: float = 8.0
     sensor: str = "vlp16"
     backend: str = "auto"
+    particles: int = 100_000
+    points: int | None = None  # scan points per update; None: the localizer's default
+
+
+# Global localization succeeded when every pose after convergence is this close to the truth
+# (the accuracy the issue asks of global localization).
+SUCCESS_M = 0.2
+SUCCESS_DEG = 3.0
 
 
 @dataclass
@@ -32,6 +42,24 @@ class DemoStep:
     title: str
     command: str  # the equivalent command line, so users can repeat the step by hand
     output: list[RenderableType]
+    data: dict | None = None  # the step's machine-readable result (the localization summary)
+
+
+def verdict(summary: dict) -> tuple[bool, str]:
+    """(success, one line): did global localization converge onto the ground truth?"""
+    if summary["converged_at_scan"] is None:
+        return False, (f"global localization did not converge in {summary['scans']} scans; "
+                       f"try more particles (--particles) or a longer log (--duration)")
+    after = summary.get("ate_after_convergence")
+    if after is None:
+        return True, f"converged after {summary['converged_after_s']:.1f} s (no ground truth)"
+    ok = after["translation_max_m"] <= SUCCESS_M and after["rotation_max_deg"] <= SUCCESS_DEG
+    where = (f"converged after {summary['converged_after_s']:.1f} s; from then on within "
+             f"{after['translation_max_m']:.3f} m and {after['rotation_max_deg']:.2f} deg of the "
+             f"ground truth")
+    if ok:
+        return True, where
+    return False, f"{where}: a wrong place (more than {SUCCESS_M} m or {SUCCESS_DEG} deg off)"
 
 
 def _run_folder(root: Path) -> Path:
@@ -47,6 +75,17 @@ def _run_folder(root: Path) -> Path:
     return folder
 
 
+def check(req: DemoRequest) -> None:
+    """Refuse impossible parameters before any folder is made."""
+    from mcl3d.particles import check_capacity
+
+    if not math.isfinite(req.duration_s) or req.duration_s <= 0:
+        raise ConfigError(f"--duration must be > 0 seconds, got {req.duration_s:g}")
+    if req.points is not None and req.points < 8:
+        raise ConfigError(f"--points must be >= 8, got {req.points}")
+    check_capacity(req.particles)
+
+
 def steps(req: DemoRequest):
     """Run the demo one step at a time, yielding each finished `DemoStep`."""
     from mcl3d import config, runtime
@@ -58,6 +97,7 @@ def steps(req: DemoRequest):
     from mcl3d.sim.pipeline import SimulateRequest, summary_rows
     from mcl3d.sim.pipeline import run as simulate
 
+    check(req)
     folder = _run_folder(req.root)
     log = folder / "office.mcap"
     sim = simulate(SimulateRequest(world="office", sensor=req.sensor, trajectory="ground",
@@ -77,3 +117,31 @@ def steps(req: DemoRequest):
                    f"mcl3d --backend {backend} build-map {log} -o {tsdf} --f16 "
                    f"--export-mesh {mesh}",
                    [summary_table("Map built", map_summary_rows(built, backend))])
+    yield localize_step(req, log, tsdf, folder / "localize", backend)
+
+
+def localize_step(req: DemoRequest, log: Path, tsdf: Path, out: Path, backend: str) -> DemoStep:
+    """Global localization of the log in its map, with the verdict against ground truth."""
+    from mcl3d import config
+    from mcl3d.console import make_progress, summary_table
+    from mcl3d.localize import LocalizeConfig, run, summary_rows
+
+    overrides = {"localizer.init.mode": "global", "localizer.particles": req.particles,
+                 "localizer.seed": req.seed, "localizer.sensor.points": req.points}
+    cfg = config.load(LocalizeConfig, None, overrides)
+    with make_progress() as progress:
+        task = progress.add_task("localize", total=None, status="", rate="")
+
+        def on_progress(result, done: int, total: int) -> None:
+            progress.update(task, completed=done, total=total, status=result.state,
+                            rate=f"{sum(result.timings_ms.values()):.0f} ms/update")
+
+        result = run(log, tsdf, out, cfg, backend=req.backend, on_progress=on_progress)
+    ok, line = verdict(result.summary)
+    points = "" if req.points is None else f" --points {req.points}"
+    return DemoStep("Localize the log in its map from no initial guess",
+                    f"mcl3d --backend {backend} localize {log} --map {tsdf} --init global "
+                    f"--particles {req.particles}{points} --seed {req.seed} -o {out}",
+                    [summary_table("Localization", summary_rows(result.summary, out)),
+                     f"[{'green' if ok else 'yellow'}]{line}"],
+                    {"success": ok, **result.summary})

@@ -326,7 +326,13 @@ def summarize(out: LocalizeRun, gt, cfg: LocalizeConfig, info) -> dict:
     stamps = np.array([r.stamp_s for r in res])
     states = [r.state for r in res]
     conv = next((i for i, s in enumerate(states) if s == "converged"), None)
-    stages = {s: float(np.mean([r.timings_ms[s] for r in res])) for s in STAGES}
+    warm = res[1:] or res  # the first update also compiles the kernels (Taichi's JIT)
+    stages = {s: float(np.mean([r.timings_ms[s] for r in warm])) for s in STAGES}
+    if conv is None and cfg.localizer.init.mode == "global":
+        out.warnings.append(
+            f"global localization did not converge in {len(res)} scans: the log may be from "
+            f"a place the map does not hold (check --map), or the map is ambiguous for this "
+            f"stretch of log (try more --particles or a longer log)")
     summary = {
         "scans": len(res), "skipped_scans": out.skipped_scans, "interrupted": out.interrupted,
         "backend": info.backend, "device": info.device, "motion_source": out.motion_source,
@@ -358,6 +364,29 @@ def summarize(out: LocalizeRun, gt, cfg: LocalizeConfig, info) -> dict:
                     evaluate(ref, Trajectory(stamps[inside], est.poses[inside]),
                              max_diff_s=1e-3).ate.translation_m.rmse)
     return summary
+
+
+def summary_rows(s: dict, out_dir: Path) -> list[tuple[str, str]]:
+    """Rows of the end-of-run summary table (what `mcl3d localize` and the demo print)."""
+    rows = [("scans", f"{s['scans']} ({s['skipped_scans']} skipped)"),
+            ("backend", f"{s['backend']} ({s['device']})"),
+            ("particles x points", f"{s['particles']:,} x {s['points']}"),
+            ("init / motion", f"{s['init']} / {s['motion_source']}"),
+            ("converged", "never" if s["converged_at_scan"] is None else
+             f"at scan {s['converged_at_scan']} ({s['converged_after_s']:.1f} s)"),
+            ("final state", s["final_state"])]
+    for key, label in (("ate_all", "ATE all scans"),
+                       ("ate_after_convergence", "ATE after convergence")):
+        if key in s:
+            e = s[key]
+            rows.append((label, f"{e['translation_rmse_m']:.3f} m RMSE (max "
+                                f"{e['translation_max_m']:.3f}), {e['rotation_rmse_deg']:.2f} "
+                                f"deg RMSE (max {e['rotation_max_deg']:.2f})"))
+    ms = s["ms_per_update"]
+    rows.append(("ms per update (warm)", f"{ms['total']:.1f} = " + " + ".join(
+        f"{k} {v:.1f}" for k, v in ms.items() if k != "total")))
+    rows.append(("outputs", str(out_dir)))
+    return rows
 
 
 def _errors(ref: np.ndarray, est: np.ndarray) -> dict:

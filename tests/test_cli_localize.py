@@ -22,7 +22,28 @@ def data(tmp_path_factory):
     localize_world.write_log(d / "empty.mcap", 3, odom=False, empty_scans=(0, 1, 2))
     localize_world.save_room_map(d / "room.tsdf", 0.1)
     localize_world.save_room_map(d / "far.tsdf", 0.1, offset_m=(200.0, 0.0, 0.0))
+    save_corridor_map(d / "corridor.tsdf")
     return d
+
+
+def save_corridor_map(path) -> None:
+    """A map of another place: a long bare corridor, nothing like the room."""
+    from mcl3d.maps.build import BuildConfig, build_from_mesh
+    from mcl3d.maps.io import save_map
+    from mcl3d.sim.mesh import MeshBuilder
+
+    b = MeshBuilder()
+    length, width, height, t = 30.0, 2.5, 3.0, 0.2
+    b.box((-t, -t, -t), (length + t, width + t, 0.0), 0.5)
+    b.box((-t, -t, height), (length + t, width + t, height + t), 0.5)
+    b.box((-t, -t, 0.0), (0.0, width + t, height), 0.5)
+    b.box((length, -t, 0.0), (length + t, width + t, height), 0.5)
+    b.box((0.0, -t, 0.0), (length, 0.0, height), 0.5)
+    b.box((0.0, width, 0.0), (length, width + t, height), 0.5)
+    mesh = b.build()
+    tsdf = build_from_mesh(mesh.vertices, mesh.triangles,
+                           BuildConfig(voxel_size_m=0.1, free_margin_m=3.0))
+    save_map(path, tsdf, source={"kind": "test corridor"}, build={})
 
 
 def invoke(*args):
@@ -102,6 +123,39 @@ def test_map_and_log_far_apart(data, tmp_path):
                tmp_path / "o", "--init", "gt", "--particles", 1000, "--backend", "cpu")
     assert r.exit_code == 1
     assert "outside the map" in said(r) and "different frames" in said(r)
+
+
+def test_global_init_in_a_map_of_another_place_says_so(data, tmp_path):
+    """No overlap that global init can notice at once (walls match walls): the run finishes,
+    never converges, and says why in a warning and in summary.json."""
+    out = tmp_path / "out"
+    r = invoke("localize", data / "room.mcap", "--map", data / "corridor.tsdf", "-o", out,
+               "--particles", 2000, "--seed", 1, "--backend", "cpu")
+    assert r.exit_code == 0, r.output
+    assert "converged" in r.output and "never" in r.output
+    assert "did not converge" in r.output
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["converged_at_scan"] is None and summary["final_state"] != "converged"
+    assert any("check --map" in w for w in summary["warnings"])
+
+
+def test_motion_source_asked_for_but_missing(data, tmp_path):
+    r = invoke("localize", data / "bare.mcap", "--map", data / "room.tsdf", "-o",
+               tmp_path / "o", "--init", "gt", "--motion", "odom", "--backend", "cpu")
+    assert r.exit_code == 1
+    assert "--motion odom" in said(r) and "no odometry" in said(r)
+    assert not (tmp_path / "o").exists()
+
+
+def test_more_particles_than_memory_is_refused_before_work(data, tmp_path, monkeypatch):
+    import mcl3d.particles
+
+    monkeypatch.setattr(mcl3d.particles, "available_memory_bytes", lambda: 64 * 2**20)
+    r = invoke("localize", data / "room.mcap", "--map", data / "room.tsdf", "-o",
+               tmp_path / "o", "--init", "gt", "--particles", 1_000_000, "--backend", "cpu")
+    assert r.exit_code == 1
+    assert "1,000,000 particles need" in said(r) and "of memory is free" in said(r)
+    assert not (tmp_path / "o").exists()
 
 
 @pytest.mark.parametrize(("args", "message"), [
