@@ -576,3 +576,72 @@ def odometry(
     if s["num_warnings"] > 5:
         console.print(f"[yellow]... {s['num_warnings'] - 5} more warnings in the summary[/]")
 
+
+@app.command()
+def slam(
+    log: Annotated[Path, typer.Argument(help="Log with LiDAR scans (MCAP, ROS 1 bag, ROS 2 bag); "
+                                        "IMU and ground truth are used when present.")],
+    out: Annotated[Path, typer.Option("-o", "--out", help="Output folder: slam.tum, "
+                                      "slam_kitti.txt, slam_online.tum, odometry.tum, map.ply, "
+                                      "frames.csv, slam_summary.json, slam_config.yaml.")],
+    particles: Annotated[int | None, typer.Option(
+        help="Particles N (default 10000).")] = None,
+    fov: Annotated[float | None, typer.Option(
+        help="Keep points within ±fov/2 degrees of the lidar's +x axis (default 360).")] = None,
+    seed: Annotated[int | None, typer.Option(help="Random seed (reproducible runs).")] = None,
+    no_imu: Annotated[bool, typer.Option("--no-imu", help="Ignore the IMU: constant-velocity "
+                                         "prediction.")] = False,
+    max_scans: Annotated[int | None, typer.Option(help="Stop after this many scans.")] = None,
+    tsdf: Annotated[Path | None, typer.Option(
+        help="Also build a TSDF map (.tsdf) from the log placed by the SLAM trajectory, ready "
+             "for `mcl3d localize`.")] = None,
+    config: Annotated[Path | None, typer.Option(
+        help="YAML/TOML SLAM config (keys as in the saved slam_config.yaml).")] = None,
+    points_topic: Annotated[str | None, typer.Option(help="Point-cloud topic.")] = None,
+    imu_topic: Annotated[str | None, typer.Option(help="IMU topic.")] = None,
+    gt_topic: Annotated[str | None, typer.Option(help="Ground-truth topic.")] = None,
+    force: Annotated[bool, typer.Option(help="Overwrite existing outputs.")] = False,
+    backend: BackendOption = None,
+) -> None:
+    """Range-based 6-DoF Monte Carlo SLAM: particles with their own keyframe poses, corrected
+    by Gauss-Newton steps on a GICP likelihood when they close a loop."""
+    from mcl3d.console import console, summary_table
+    from mcl3d.slam_pipeline import SlamRequest, run
+
+    overrides = {"particles": particles, "fov_deg": fov, "seed": seed,
+                 "odometry.use_imu": False if no_imu else None}
+    info = _init_backend(backend)
+    result = run(SlamRequest(log=log, output_dir=out, config_path=config, overrides=overrides,
+                             force=force, points_topic=points_topic, imu_topic=imu_topic,
+                             gt_topic=gt_topic, max_scans=max_scans, tsdf=tsdf))
+    console.print(summary_table("Monte Carlo SLAM", slam_rows(result.summary, info, out)))
+    for note in result.summary["notes"]:
+        console.print(f"[yellow]note:[/] {note}")
+
+
+def slam_rows(s: dict, info, out: Path) -> list[tuple[str, str]]:
+    from mcl3d.build_map import format_bytes
+
+    ms = s["ms_per_frame"]
+    stages = ", ".join(f"{k} {v:.0f}" for k, v in s["ms_per_stage"].items() if v >= 0.5)
+    rows = [("scans", f"{s['scans']} ({s['keyframes']} keyframes, {s['path_length_m']:.1f} m)"),
+            ("particles", f"{s['particles']:,} ({format_bytes(s['particle_state_bytes'])} "
+                          "of particle state)"),
+            ("backend", f"{info.backend} ({info.device})"),
+            ("ms per frame", f"{ms['mean']:.0f} mean, {ms['median']:.0f} median"),
+            ("ms per stage", stages),
+            ("loops", f"{s['loop_frames']} scans saw a loop, {s['corrected_frames']} corrected"),
+            ("pruned", f"{s['pruned_total']:,} particles"),
+            ("hypotheses at the end", f"{s['final_hypotheses']} (ESS {s['final_ess']:.0f})")]
+    if s["elevator_frames"]:
+        rows.append(("elevator", f"{s['elevator_frames']} scans"))
+    ev = s["evaluation"]
+    if ev and "slam" in ev:
+        for name, label in (("slam", "ATE SLAM"), ("online", "ATE online"),
+                            ("odometry", "ATE odometry only")):
+            rows.append((label, f"{ev[name]['ate_m']:.3f} m, {ev[name]['ate_deg']:.2f} deg "
+                                "RMSE (SE(3)-aligned)"))
+    if "tsdf" in s:
+        rows.append(("TSDF map", s["tsdf"]["path"]))
+    rows.append(("outputs", str(out)))
+    return rows
