@@ -20,10 +20,10 @@ travel as (n, α, β) instead, and R C_A Rᵀ = αI + β (Rn)(Rn)ᵀ costs 15 mu
 cpu time per correspondence (10,000 poses x 512 points: ~42 cpu-ms per iteration, from 52
 before the plane form and the home-slot split described in `linearize`).
 
-`linearize` runs over (row, chunk of source points) and adds each chunk's sums to its group
-atomically, so one pose uses many threads and 100,000 poses use them all the same way (a
-batch with one row per pose and whole rows per task stores its sums without atomics);
-`step` then solves every group's system (Jacobi-scaled, unrolled 6x6 Cholesky) with
+`linearize` runs over (row, chunk of source points), so one pose uses many threads and
+100,000 poses use them all the same way; each task stores its own sums (a batch with one row
+per pose and whole rows per task stores them straight into its group) and `reduce_tasks`
+adds them up in a fixed order, so results are the same bits on every run; `step` then solves every group's system (Jacobi-scaled, unrolled 6x6 Cholesky) with
 Gauss-Newton or Levenberg-Marquardt acceptance and proposes the next candidate.
 """
 
@@ -143,10 +143,20 @@ def linearize(src_pts: ti.template(), src_cov: ti.template(), row_group: ti.temp
               plane_cov: ti.template()):
     """`src_cov` holds upper(C_A) (see rotated_cov_basis), or (n, α, β, 0) with `plane_cov`
     (see rotated_source_cov). `exclusive`: every group has one row and one chunk, so each task
-    owns its group's sums and stores them without atomics."""
+    owns its group's sums and stores them in acc_*[group]; otherwise task (r, c) stores its
+    sums in acc_*[r * num_chunks + c] (zeros when it has none) and `reduce_tasks` adds them up
+    in a fixed order: float atomics would make every run differ in the last bits, and a
+    tracker or particle filter turns those into different trajectories."""
     for r, c in ti.ndrange(num_rows, num_chunks):
         g = row_group[r]
         begin = c * chunk
+        slot = g
+        if ti.static(not exclusive):
+            slot = r * num_chunks + c
+            acc_H[slot] = ti.Matrix.zero(ti.f32, 6, 6)
+            acc_b[slot] = ti.Vector.zero(ti.f32, 6)
+            acc_e[slot] = 0.0
+            acc_n[slot] = 0
         if status[g] == RUNNING and begin < row_count[r]:
             m = row_map[r]
             quat, t = pose_compose(row_q[r], row_t[r], q_cand[g], t_cand[g])
@@ -233,16 +243,39 @@ def linearize(src_pts: ti.template(), src_cov: ti.template(), row_group: ti.temp
                         H[i + 3, j] = -S_tr[i, j]
                         H[i + 3, j + 3] = tt[i, j]
                 H_r, b_r6 = to_right_perturbation(R, H, b)
-                if ti.static(exclusive):
-                    acc_H[g] = H_r
-                    acc_b[g] = b_r6
-                    acc_e[g] = err
-                    acc_n[g] = n
-                else:
-                    acc_H[g] += H_r
-                    acc_b[g] += b_r6
-                    acc_e[g] += err
-                    acc_n[g] += n
+                acc_H[slot] = H_r
+                acc_b[slot] = b_r6
+                acc_e[slot] = err
+                acc_n[slot] = n
+
+
+@ti.kernel
+def reduce_tasks(num_rows: ti.i32, num_chunks: ti.i32, row_group: ti.template(),
+                 status: ti.template(), task_H: ti.template(), task_b: ti.template(),
+                 task_e: ti.template(), task_n: ti.template(), acc_H: ti.template(),
+                 acc_b: ti.template(), acc_e: ti.template(), acc_n: ti.template(),
+                 one_row_per_group: ti.template()):
+    """Add each running group's task sums in row, then chunk order (see linearize): in
+    parallel over rows when every group has one row, else in one ordered pass."""
+    if ti.static(one_row_per_group):
+        for r in range(num_rows):
+            g = row_group[r]
+            if status[g] == RUNNING:
+                for c in range(num_chunks):
+                    k = r * num_chunks + c
+                    acc_H[g] += task_H[k]
+                    acc_b[g] += task_b[k]
+                    acc_e[g] += task_e[k]
+                    acc_n[g] += task_n[k]
+    else:
+        ti.loop_config(serialize=True)
+        for k in range(num_rows * num_chunks):
+            g = row_group[k // num_chunks]
+            if status[g] == RUNNING:
+                acc_H[g] += task_H[k]
+                acc_b[g] += task_b[k]
+                acc_e[g] += task_e[k]
+                acc_n[g] += task_n[k]
 
 
 @ti.func

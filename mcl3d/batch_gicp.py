@@ -127,6 +127,7 @@ class BatchGicp:
         self.best_n = ti.field(ti.i32, G)
         self.num_source = 0
         self.plane_covs = False  # src_cov rows hold (n, α, β, 0), see plane_form
+        self._tasks: tuple | None = None  # per-task sums of a split linearization
 
     def set_source(self, points: np.ndarray, covs: np.ndarray) -> None:
         """Upload the source pool (points in the source frame, covariances (N, 3, 3)).
@@ -225,17 +226,32 @@ class BatchGicp:
         if chunk is None:
             chunk = self.default_chunk()
         num_chunks = (self._max_count + chunk - 1) // chunk
+        exclusive = self._one_row_per_group and num_chunks == 1
+        sums = (self.acc_H, self.acc_b, self.acc_e, self.acc_n) if exclusive else \
+            self._task_sums(self._rows * num_chunks)
         gicp.linearize(self.src_pts, self.src_cov, self.row_group, self.row_map, self.row_q,
                        self.row_t, self.row_start, self.row_count, self._rows, chunk,
                        num_chunks, self.q_cand, self.t_cand, self.status, maps.vox, maps.res,
-                       maps.buckets, maps.max_probes, self.acc_H, self.acc_b, self.acc_e,
-                       self.acc_n, self._one_row_per_group and num_chunks == 1,
-                       self.plane_covs)
+                       maps.buckets, maps.max_probes, *sums, exclusive, self.plane_covs)
+        if not exclusive:
+            gicp.reduce_tasks(self._rows, num_chunks, self.row_group, self.status, *sums,
+                              self.acc_H, self.acc_b, self.acc_e, self.acc_n,
+                              self._one_row_per_group)
         return gicp.step(self._groups, int(use_lm), rotation_eps_rad, translation_eps_m,
                          self.q_cur, self.t_cur, self.q_cand, self.t_cand, self.lam,
                          self.status, self.iters, self.acc_H, self.acc_b, self.acc_e,
                          self.acc_n, self.best_H, self.best_b, self.best_e, self.best_n,
                          self._groups < SERIAL_GROUPS)
+
+    def _task_sums(self, tasks: int) -> tuple:
+        """Per-task sums for a split linearization (fields grown on demand, never shrunk)."""
+        import taichi as ti
+
+        if self._tasks is None or self._tasks[0].shape[0] < tasks:
+            size = 1 << max(6, (tasks - 1).bit_length())
+            self._tasks = (ti.Matrix.field(6, 6, ti.f32, size), ti.Vector.field(6, ti.f32, size),
+                           ti.field(ti.f32, size), ti.field(ti.i32, size))
+        return self._tasks
 
     def optimize(self, max_iterations: int = 20, use_lm: bool = False,
                  rotation_eps_rad: float = 1e-3 * np.pi / 180,

@@ -129,6 +129,12 @@ def test_slam_without_imu_and_interrupted_keeps_results(forest_log, tmp_path, ti
     assert result.exit_code == 0, result.output
     assert "constant velocity" in result.output
     assert len(read_tum(out / "slam.tum")) == 20
+    again = tmp_path / "noimu_again"
+    result = CliRunner().invoke(app, ["slam", str(forest_log), "-o", str(again), "--particles",
+                                      "100", "--no-imu", "--max-scans", "20"])
+    assert result.exit_code == 0, result.output
+    for name in ("slam.tum", "slam_online.tum", "odometry.tum", "map.ply"):  # reproducible
+        assert (out / name).read_bytes() == (again / name).read_bytes(), name
 
     step = MonteCarloSlam.step
 
