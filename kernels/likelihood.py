@@ -37,6 +37,8 @@ CODE_FREE = 2 * TABLE_SIZE
 CODE_UNKNOWN = 2 * TABLE_SIZE + 1
 N_CODES = 2 * TABLE_SIZE + 2
 WORDS_Z = BLOCK // 2  # two 16-bit codes per i32 word
+COARSE_BINS = 256  # coarse search model: distance bins, then far-free, then unknown
+COARSE_UNKNOWN = COARSE_BINS + 1
 KEY_BITS = 5  # per axis of locality_keys: 15-bit keys (numpy sorts them with a radix sort)
 
 
@@ -148,6 +150,38 @@ def scan_log_likelihood(m: ti.template(), codes: ti.template(), slot: ti.templat
             code = (word >> ((g[2] & 1) << 4)) & 0xFFFF
             total += table[code]
             hits += (code >> MATCH_BIT) & 1
+        inv_m = 1.0 / ti.max(n_pts, 1)
+        log_w[i] += tempering * total
+        match[i] = hits * inv_m
+        ll_mean[i] = total * inv_m
+
+
+@ti.kernel
+def coarse_scan_log_likelihood(field: ti.template(), origin: vec3, inv_cell: ti.f32,
+                               order: ti.template(), pos: ti.template(), quat: ti.template(),
+                               n: ti.i32, pts: ti.template(), n_pts: ti.i32,
+                               table: ti.template(), match_codes: ti.i32, tempering: ti.f32,
+                               log_w: ti.template(), match: ti.template(),
+                               ll_mean: ti.template()):
+    """The coarse search model (mcl3d.sensor_model.coarse_field): one lookup per point in a
+    dense grid of distance codes, the same outputs as scan_log_likelihood."""
+    dims = ti.static(field.shape)
+    ti.loop_config(block_dim=64)
+    for k in range(n):
+        i = order[k]
+        R = quat_to_mat(quat[i])
+        t = (pos[i] - origin) * inv_cell
+        Rs = R * inv_cell
+        total = 0.0
+        hits = 0
+        for j in range(n_pts):
+            g = ti.cast(ti.floor(Rs @ pts[j] + t), ti.i32)
+            inside = (g[0] >= 0) & (g[0] < dims[0]) & (g[1] >= 0) & (g[1] < dims[1]) & (
+                g[2] >= 0) & (g[2] < dims[2])
+            gc = ti.select(inside, g, 0)
+            code = ti.select(inside, field[gc[0], gc[1], gc[2]], COARSE_UNKNOWN)
+            total += table[code]
+            hits += ti.cast(code < match_codes, ti.i32)
         inv_m = 1.0 / ti.max(n_pts, 1)
         log_w[i] += tempering * total
         match[i] = hits * inv_m

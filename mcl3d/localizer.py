@@ -66,6 +66,14 @@ class EstimateConfig(Section):
     converged_std_rad: float = Field(0.1, gt=0.0)
     hypothesis_min_weight: float = Field(0.1, gt=0.0, le=1.0,
                                          description="clusters reported as hypotheses")
+    converged_scans: int = Field(
+        5, ge=1, description="global search: the dominant cluster must pass the test this many "
+                             "scans in a row (after the coarse phase) to be converged")
+    converge_min_motion_m: float = Field(
+        1.0, ge=0.0, description="global search: ... and the sensor must have moved this far "
+                                 "since the (re-)initialization (or turned as below): scans "
+                                 "from one place are not independent evidence")
+    converge_min_rotation_rad: float = Field(1.0, ge=0.0)
 
 
 class RecoveryConfig(Section):
@@ -82,8 +90,10 @@ class RecoveryConfig(Section):
                                                     "per-point log-likelihood falls this many "
                                                     "nats below its slow average")
     patience: int = Field(2, ge=1, description="lost scans in a row before re-seeding")
-    grace_scans: int = Field(20, ge=0, description="no recovery before this many scans "
-                                                   "unless converged once")
+    grace_scans: int = Field(20, ge=0, description="tracking: no recovery before this many "
+                                                   "scans after the initialization, unless "
+                                                   "converged (a global search: not before "
+                                                   "its first convergence)")
     fraction: float = Field(0.5, gt=0.0, le=1.0,
                             description="share of particles re-seeded by expansion")
     global_fraction: float = Field(1.0, gt=0.0, le=1.0,
@@ -167,6 +177,13 @@ class Localizer:
         self._last: LocalizationResult | None = None
         self.last_sample_positions = np.zeros((0, 3), np.float32)  # for visualization
         self.anneal_beta = 1.0
+        self.sigma_m = config.sensor.sigma_m  # the hit term's sigma in the last update
+        self._searching = False  # global search since the last global (re-)initialization
+        self._search_scans = 0
+        self._moved = np.zeros(2)  # m, rad since the search began
+        self._dominant_run = 0
+        self._init_step = 0
+        self._coarse = None  # the coarse search field, built at the first global init
         self._rng = np.random.default_rng(config.seed)
         import taichi as ti
 
@@ -185,6 +202,7 @@ class Localizer:
             self.cache_block = info is not None and info.backend != "cpu"
         self.cache_block = bool(self.cache_block)
         self._table = ti.field(ti.f32, shape=kl.N_CODES)
+        self._coarse_table = ti.field(ti.f32, shape=kl.COARSE_BINS + 2)
         self._table_sigma = None
         # the sensor model per voxel, evaluated once (the map is read-only from here on):
         # 1 KiB per map block, a quarter of an f32 map
@@ -209,12 +227,41 @@ class Localizer:
         from mcl3d.kernels import particles as kp
 
         cells = self.free_space()
+        if fraction >= 1.0:
+            self._start_search()
         p = self.particles
         gravity = self.imu_roll_pitch is not None
         roll, pitch = self.imu_roll_pitch if gravity else (0.0, 0.0)
         kp.init_cells(p.pos, p.quat, p.log_w, p.n, cells.corners_m, len(cells.corners_m),
                       cells.cell_m, int(gravity), roll, pitch, self.cfg.init.gravity_std_rad,
                       fraction, self.seed, self._counter(1))
+
+    def _start_search(self) -> None:
+        """A fresh global search: coarse model first, convergence only after motion."""
+        self._searching = True
+        self._init_step = self.step_index
+        self._search_scans = 0
+        self._moved[:] = 0.0
+        self._dominant_run = 0
+        self.ever_converged = False
+        if self.cfg.sensor.coarse_sigma_m > 0 and self._coarse is None:
+            import taichi as ti
+
+            from mcl3d.sensor_model import coarse_field
+
+            host = coarse_field(self.tsdf, self.cfg.sensor)
+            self._coarse = ti.field(ti.i32, shape=host.codes.shape)
+            self._coarse.from_numpy(host.codes)
+            self._coarse_host = host
+
+    def search_sigma(self) -> float | None:
+        """The coarse model's sigma for the next scan, None outside the coarse phase."""
+        s = self.cfg.sensor
+        if not self._searching or self._coarse is None or self._search_scans >= s.coarse_scans:
+            return None
+        frac = self._search_scans / s.coarse_scans
+        return s.coarse_sigma_m * (min(s.search_sigma_m, s.coarse_sigma_m)
+                                   / s.coarse_sigma_m) ** frac
 
     def init_pose(self, T_map_lidar: np.ndarray, std: list[float], fraction: float = 1.0
                   ) -> None:
@@ -272,11 +319,16 @@ class Localizer:
         t0 = time.perf_counter()
         self.step_index += 1
         step = self._counter(0)
+        coarse_sigma = self.search_sigma()
         if T_prev_curr is not None:
             extra_r, extra_t = extra_std
-            if not self.ever_converged:
-                extra_r += cfg.motion.explore_rot_rad
-                extra_t += cfg.motion.explore_trans_m
+            if not self.ever_converged:  # the exploration grows with the coarse sigma
+                scale = max(1.0, (coarse_sigma or 0.0) / cfg.sensor.search_sigma_m)
+                extra_r += cfg.motion.explore_rot_rad * scale
+                extra_t += cfg.motion.explore_trans_m * scale
+            if self._searching:
+                self._moved += [np.linalg.norm(T_prev_curr[:3, 3]),
+                                geometry.rotation_angle(np.asarray(T_prev_curr)[:3, :3])]
             std_r, std_t = self.motion_std(T_prev_curr, extra_r, extra_t)
             t, q = geometry.tq_from_se3(np.asarray(T_prev_curr, dtype=np.float64))
             motion.propagate(p.pos, p.quat, p.n, ti.math.vec4(*q), ti.math.vec3(*t),
@@ -297,7 +349,14 @@ class Localizer:
             self._fast = self._slow = None  # log-likelihoods change scale with sigma
             self._healthy = False
         self.upload_scan(pts)
-        self.scan_likelihood(len(pts), self.cache_block)
+        if coarse_sigma is None:
+            self.sigma_m = sigma
+            self.scan_likelihood(len(pts), self.cache_block)
+        else:
+            self.sigma_m = coarse_sigma
+            self.coarse_likelihood(len(pts), coarse_sigma)
+        if self._searching:
+            self._search_scans += 1
         s = cfg.sensor
         n = p.n
         self.anneal_beta = 1.0  # the extra tempering of this scan (1: none)
@@ -376,6 +435,27 @@ class Localizer:
                             self.cfg.sensor.tempering(n_points), p.log_w, p.match, p.ll_mean,
                             cache_block)
 
+    def coarse_likelihood(self, n_points: int, sigma_m: float) -> None:
+        """Like scan_likelihood, with the coarse search model at `sigma_m`."""
+        import taichi as ti
+
+        from mcl3d.kernels.likelihood import coarse_scan_log_likelihood, locality_keys
+        from mcl3d.sensor_model import coarse_match_codes, coarse_table
+
+        p = self.particles
+        s = self.cfg.sensor
+        field = self._coarse_host
+        self._coarse_table.from_numpy(coarse_table(s, sigma_m))
+        cell = field.cell_m
+        locality_keys(p.pos, p.quat, p.n, cell, cell / 5.0, self._keys)
+        keys = self._keys.to_numpy()[:p.n].astype(np.uint16)
+        self._order_host[:p.n] = np.argsort(keys, kind="stable")
+        self._order.from_numpy(self._order_host)
+        coarse_scan_log_likelihood(self._coarse, ti.math.vec3(*field.origin_m), 1.0 / cell,
+                                   self._order, p.pos, p.quat, p.n, self._points, n_points,
+                                   self._coarse_table, coarse_match_codes(s),
+                                   s.tempering(n_points), p.log_w, p.match, p.ll_mean)
+
     def _anneal(self, n: int, scale: float) -> float:
         """Largest beta <= 1 with ESS(log_w_prev + beta * increment) >= anneal_min_ess * N;
         the increment already added is scaled down to beta times itself."""
@@ -424,9 +504,17 @@ class Localizer:
         compact = (h0.position_std_m <= e.converged_std_m
                    and h0.rotation_std_rad <= e.converged_std_rad)
         strong = [h for h in hyps if h.weight >= e.hypothesis_min_weight]
-        if h0.weight >= e.converged_weight and compact:
+        dominant = h0.weight >= e.converged_weight and compact
+        if self._searching:  # global search: dominant for a while, after the coarse phase
+            self._dominant_run = self._dominant_run + 1 if (
+                dominant and self.search_sigma() is None) else 0
+            moved = (self._moved[0] >= e.converge_min_motion_m
+                     or self._moved[1] >= e.converge_min_rotation_rad)
+            dominant = self._dominant_run >= e.converged_scans and moved
+        if dominant:
             state = "converged"
             self.ever_converged = True
+            self._searching = False
         elif len(strong) >= 2 or self.ever_converged:
             state = "ambiguous"
         else:
@@ -441,7 +529,8 @@ class Localizer:
         if self._fast is None:
             self._fast, self._slow = x.copy(), x.copy()
         self._fast += r.alpha_fast * (x - self._fast)
-        active = r.enabled and (self.ever_converged or self.step_index > r.grace_scans)
+        active = r.enabled and (self.ever_converged or (
+            not self._searching and self.step_index - self._init_step > r.grace_scans))
         lost = active and bool(self._fast[0] < r.lost_match_ratio
                                or self._fast[0] < r.drop_ratio * self._slow[0]
                                or self._fast[1] < self._slow[1] - r.ll_drop)
@@ -477,6 +566,8 @@ class Localizer:
         else:
             self.init_global(r.global_fraction)
             self.ever_converged = False  # global localization again: search mode
+            if r.global_fraction < 1.0:
+                self._searching = False  # part of the cloud stays: no coarse phase
 
     def _kld_count(self, pos, quat, w) -> int:
         r = self.cfg.resample

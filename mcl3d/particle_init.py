@@ -34,6 +34,11 @@ class InitConfig(Section):
                             "gravity, +- auto_band_m (else the default band); null samples all "
                             "free space")
     default_band_m: list[float] = Field([0.2, 2.5], description="band when auto finds no floor")
+    covered: bool | str = Field(
+        "auto", description="keep only cells with a surface somewhere above them (inside a "
+                            "building, not on its roof or around it); auto: when at least "
+                            "covered_share of the candidates are covered (indoor maps)")
+    covered_share: float = Field(0.3, ge=0.0, le=1.0)
     auto_band_m: float = Field(0.2, gt=0.0, description="half-width of the auto band")
     cell_m: float = Field(0.2, gt=0.0, description="resolution of the free-space candidates "
                                                    "(rounded to voxel x power of two)")
@@ -85,6 +90,20 @@ def cell_states(tsdf, factor: int) -> np.ndarray:
     return grid
 
 
+def _keep_covered(grid: np.ndarray, ok: np.ndarray, cfg: InitConfig) -> np.ndarray:
+    """Candidates under a surface (a ceiling, a roof, a canopy), when asked or when they are
+    a sizeable share (an indoor map: mesh-built maps also mark the space above the roof and
+    around the walls free, which would take half the particles)."""
+    if cfg.covered is False or cfg.covered == "false":
+        return ok
+    occupied = grid == OCCUPIED_CELL
+    above = np.flip(np.cumsum(np.flip(occupied, axis=2), axis=2), axis=2) > 0
+    covered = ok & np.concatenate([above[:, :, 1:], np.zeros_like(above[:, :, :1])], axis=2)
+    if cfg.covered == "auto" and covered.sum() < cfg.covered_share * max(ok.sum(), 1):
+        return ok
+    return covered
+
+
 def free_cells(tsdf, cfg: InitConfig) -> FreeCells:
     """Candidate cells for global initialization; MapError when there are none."""
     factor = _cell_factor(tsdf, cfg.cell_m)
@@ -106,6 +125,7 @@ def free_cells(tsdf, cfg: InitConfig) -> FreeCells:
             height = (z - last - 0.5) * cell + tsdf.truncation_m
             band[:, :, z] = (height >= lo) & (height <= hi)
         ok &= band
+    ok = _keep_covered(grid, ok, cfg)
     idx = np.argwhere(ok)
     if len(idx) == 0:
         where = f" within the height band {band} m above a surface" if band is not None else ""

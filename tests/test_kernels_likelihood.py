@@ -213,3 +213,78 @@ def test_spatial_order_is_a_permutation_along_a_z_curve():
     assert np.all(np.abs(np.diff(cells[:8], axis=0)).max(axis=1) <= 1)  # the first 2^3 cube
     np.testing.assert_array_equal(cells[0], [0, 0, 0])
     np.testing.assert_array_equal(cells[-1], [3, 3, 3])
+
+
+def coarse_case(max_dist_m=0.45):
+    from mcl3d.sensor_model import coarse_field
+
+    cfg = SensorModelConfig(coarse_cell_m=VOX, coarse_max_dist_m=max_dist_m, match_dist_m=0.12)
+    return cfg, coarse_field(tiny_map(), cfg)
+
+
+def test_coarse_field_is_the_distance_to_the_nearest_surface_cell(ti_runtime):
+    """Codes against a brute-force distance between cell centres; far cells split into
+    observed (far-free code) and unknown (the unknown block, the never-observed voxels)."""
+    from mcl3d.sensor_model import COARSE_BINS
+
+    cfg, field = coarse_case()
+    assert field.cell_m == pytest.approx(VOX) and field.codes.shape == (16, 16, 16)
+    g = np.stack(np.meshgrid(*(np.arange(16),) * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    surface_k = int(FLOOR_Z / VOX)
+    in_free_block = (g[:, 0] >= 8) & (g[:, 1] >= 8) & (g[:, 2] >= 8)
+    surf = g[(g[:, 2] == surface_k) & ~in_free_block]
+    dist = np.sqrt(((g[:, None, :] - surf[None]) ** 2).sum(-1)).min(1) * VOX
+    unknown = ((g[:, 0] >= 8) & (g[:, 1] >= 8) & (g[:, 2] < 8)) | (
+        (g[:, 0] == 0) & (g[:, 1] < 8) & (g[:, 2] < 8))
+    code = field.codes[g[:, 0], g[:, 1], g[:, 2]]
+    near = dist < cfg.coarse_max_dist_m - 1e-6
+    np.testing.assert_array_equal(code[near], np.minimum(
+        (dist[near] * COARSE_BINS / cfg.coarse_max_dist_m).astype(int), COARSE_BINS - 1))
+    np.testing.assert_array_equal(code[~near & ~unknown], COARSE_BINS)
+    np.testing.assert_array_equal(code[~near & unknown], COARSE_BINS + 1)
+
+
+def test_coarse_kernel_matches_numpy_twin(ti_runtime):
+    import taichi as ti
+
+    from mcl3d.kernels.likelihood import coarse_scan_log_likelihood
+    from mcl3d.sensor_model import (
+        COARSE_BINS,
+        coarse_log_likelihood_numpy,
+        coarse_match_codes,
+        coarse_table,
+    )
+
+    cfg, field = coarse_case()
+    rng = np.random.default_rng(4)
+    n, m = 41, 29
+    positions = rng.uniform([-0.3, -0.3, 0.3], [1.9, 1.9, 1.7], size=(n, 3))
+    quats = geometry.rot_to_quat(geometry.random_rotations(rng, n))
+    points = rng.normal(scale=0.6, size=(m, 3))
+    table = coarse_table(cfg, 0.3)
+    pos = ti.Vector.field(3, ti.f32, shape=n)
+    quat = ti.Vector.field(4, ti.f32, shape=n)
+    pts = ti.Vector.field(3, ti.f32, shape=m)
+    tab = ti.field(ti.f32, shape=len(table))
+    codes = ti.field(ti.i32, shape=field.codes.shape)
+    log_w, match, ll_mean = (ti.field(ti.f32, shape=n) for _ in range(3))
+    order = ti.field(ti.i32, shape=n)
+    pos.from_numpy(positions.astype(np.float32))
+    quat.from_numpy(quats.astype(np.float32))
+    pts.from_numpy(points.astype(np.float32))
+    tab.from_numpy(table)
+    codes.from_numpy(field.codes)
+    log_w.from_numpy(np.full(n, 1.0, np.float32))
+    order.from_numpy(rng.permutation(n).astype(np.int32))
+    coarse_scan_log_likelihood(codes, ti.math.vec3(*field.origin_m), 1.0 / field.cell_m, order,
+                               pos, quat, n, pts, m, tab, coarse_match_codes(cfg),
+                               cfg.tempering(m), log_w, match, ll_mean)
+    r_ll, r_match, r_mean = coarse_log_likelihood_numpy(
+        field, positions, quats, points, table, coarse_match_codes(cfg), cfg.tempering(m))
+    per_point = np.abs(ll_mean.to_numpy() - r_mean) * m
+    assert np.mean(per_point < 1e-3) > 0.9  # f32: a point on a cell face may differ
+    np.testing.assert_allclose(log_w.to_numpy() - 1.0, r_ll, atol=cfg.tempering(m) * 4.0)
+    assert np.mean(np.abs(match.to_numpy() - r_match) < 1e-6) > 0.9
+    # the table: best on a surface, the random floor far from it, free below, unknown neutral
+    assert table[0] > table[COARSE_BINS - 1] > cfg.log_free
+    assert table[-1] == pytest.approx(cfg.log_unknown)

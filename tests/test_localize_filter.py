@@ -71,6 +71,40 @@ def test_global_localization_converges(room, ti_runtime):
     assert results[-1].state == "converged"
 
 
+def test_standing_still_is_never_converged_in_a_global_search(room, ti_runtime):
+    """Scans from one place are not independent evidence: however peaked the cloud gets, a
+    global search that has not moved stays unconverged, then converges once it moves."""
+    from mcl3d.localizer import Localizer, LocalizerConfig
+
+    tsdf, scanner = room
+    path = localize_world.path(16)
+    poses = np.concatenate([np.repeat(path[:1], 10, axis=0), path])
+    loc = Localizer(tsdf, LocalizerConfig(particles=20000, seed=2), imu_roll_pitch=(0.0, 0.0))
+    loc.init_global()
+    motions = odometry(poses, np.random.default_rng(4), noise_m=0.0, noise_rad=0.0)
+    results = [loc.step(scanner.scan(T), dT, 0.1 * k)
+               for k, (T, dT) in enumerate(zip(poses, motions, strict=True))]
+    assert [loc.cfg.sensor.coarse_scans > 0, results[0].state] == [True, "initializing"]
+    assert all(r.state != "converged" for r in results[:10])
+    assert results[-1].state == "converged"
+    d, a = errors(results[-1].T_map_lidar, poses[-1])
+    assert d < 0.2 and a < 3.0
+
+
+def test_global_candidates_stay_under_the_ceiling(room, ti_runtime):
+    """A mesh-built map is also free above the roof; indoors only covered cells are kept."""
+    from mcl3d.particle_init import InitConfig, free_cells
+
+    tsdf, _ = room
+    everywhere = free_cells(tsdf, InitConfig(height_band_m=None, covered=False))
+    inside = free_cells(tsdf, InitConfig(height_band_m=None))  # covered: auto
+    assert (everywhere.corners_m[:, 2] > localize_world.ROOM[2]).any()
+    centres = inside.corners_m + 0.5 * inside.cell_m
+    assert (centres[:, 2] < localize_world.ROOM[2]).all()
+    assert np.all((centres[:, :2] > 0.0) & (centres[:, :2] < localize_world.ROOM[:2]))
+    assert 0.3 * len(everywhere.corners_m) < len(inside.corners_m) < len(everywhere.corners_m)
+
+
 def test_kld_adapts_the_particle_count(room, ti_runtime):
     from mcl3d.localizer import Localizer, LocalizerConfig
 

@@ -334,7 +334,8 @@ def forest(seed: int = 0, rows: int = 10, trees_per_row: int = 20, row_spacing_m
 
 def arena(seed: int = 0, length_m: float = 40.0, width_m: float = 30.0,
           height_m: float = 10.0) -> World:
-    """A large hall with symmetric columns and almost nothing else (one small asymmetry)."""
+    """A large hall with symmetric columns and almost nothing else (a door, a stage and a
+    crate break the symmetry)."""
     if length_m < 15 or width_m < 10:
         raise ConfigError(f"world.arena_length_m must be >= 15 and world.arena_width_m >= 10, "
                           f"got {length_m:g} and {width_m:g}")
@@ -353,7 +354,13 @@ def arena(seed: int = 0, length_m: float = 40.0, width_m: float = 30.0,
             b.box([fx * L - 0.3, fy * W - 0.3, 0.0], [fx * L + 0.3, fy * W + 0.3, H], CONCRETE)
     for fx in np.linspace(0.1, 0.9, 5):  # roof trusses, symmetric
         b.box([fx * L - 0.15, 0.0, H - 0.8], [fx * L + 0.15, W, H - 0.6], METAL)
-    b.box([L - 0.15, 0.4 * W, 0.0], [L, 0.4 * W + 4.0, 4.0], METAL)  # a roll-up door panel
+    # What breaks the 180-degree symmetry (a hall that is exactly symmetric cannot be told
+    # from its twin by any filter; real halls have doors, a stage, clutter): a roll-up door
+    # panel standing 0.25 m proud of the east wall's inner face (x = L - 0.15), a low stage
+    # against the west wall at a seeded place, and a crate in one corner.
+    b.box([L - 0.4, 0.4 * W, 0.0], [L - 0.15, 0.4 * W + 4.0, 4.0], METAL)
+    sy = rng.uniform(0.3, 0.5) * W
+    b.box([0.15, sy, 0.0], [2.65, sy + 6.0, 0.8], WOOD)  # the stage
     cx = rng.uniform(2.0, 4.0)
     b.box([cx, 1.0, 0.0], [cx + 1.2, 1.8, 1.0], WOOD)  # a crate in one corner
     loop = [(5.0, 5.0), (L - 5.0, 5.0), (L - 5.0, W - 5.0), (5.0, W - 5.0)]
