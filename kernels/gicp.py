@@ -23,8 +23,9 @@ before the plane form and the home-slot split described in `linearize`).
 `linearize` runs over (row, chunk of source points), so one pose uses many threads and
 100,000 poses use them all the same way; each task stores its own sums (a batch with one row
 per pose and whole rows per task stores them straight into its group) and `reduce_tasks`
-adds them up in a fixed order, so results are the same bits on every run; `step` then solves every group's system (Jacobi-scaled, unrolled 6x6 Cholesky) with
-Gauss-Newton or Levenberg-Marquardt acceptance and proposes the next candidate.
+adds them up in a fixed order, so results are the same bits on every run; `step` then
+solves every group's system (Jacobi-scaled, unrolled 6x6 Cholesky) with Gauss-Newton or
+Levenberg-Marquardt acceptance and proposes the next candidate.
 """
 
 import taichi as ti
