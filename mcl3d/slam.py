@@ -75,8 +75,8 @@ class SlamConfig(Section):
     max_motion_sigma_deg: float = Field(0.05, gt=0, description="the same for rotation (deg)")
     points_weight: float = Field(30.0, gt=0, description="independent points a scan is worth "
                                  "in the likelihood (tempering; see docs/slam.md)")
-    outlier_cost: float = Field(9.0, ge=0, description="cost of a scan point with no voxel "
-                                "(a matched point costs eᵀΩe)")
+    outlier_cost: float = Field(0.0, ge=0, description="cost of a scan point with no voxel "
+                                "(a matched point costs eᵀΩe; 0 as in the paper)")
     prune_posterior: float = Field(1e-8, ge=0, lt=1, description="dead below this posterior")
     prune_likelihood_ratio: float = Field(1e-16, ge=0, lt=1, description="dead when the "
                                           "frame likelihood is below this times the best "
