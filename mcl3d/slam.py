@@ -320,7 +320,7 @@ class MonteCarloSlam:
             p.weigh(len(src_pts), cfg.outlier_cost, cfg.points_weight)
         watch.lap("weigh")
         T_odom = self._with_offset(odo.T_world_lidar)
-        keyframe = not elevator and self._keyframe_due(down, T_odom, first)
+        keyframe = not elevator and self._keyframe_due(down, T_odom)
         if keyframe:
             self._add_keyframe(down, covs)
         watch.lap("keyframe")
@@ -390,7 +390,7 @@ class MonteCarloSlam:
         down = voxel_downsample(points, cfg.scan_voxel_m) if len(points) else points
         return down, estimate_covariances(down, oc.k_neighbors)
 
-    def _keyframe_due(self, down: np.ndarray, T_motion_lidar: np.ndarray, first: bool) -> bool:
+    def _keyframe_due(self, down: np.ndarray, T_motion_lidar: np.ndarray) -> bool:
         if len(down) < self.cfg.min_inliers:
             return False
         if self.particles.num_keyframes == 0:

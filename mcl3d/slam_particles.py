@@ -50,11 +50,7 @@ class SlamParticles:
         self.kf = ti.ndarray(ti.f32, (n, KEYFRAME_STEP, 6))
         self.kf_travel = ti.ndarray(ti.f32, max_keyframes)
         self.num_keyframes = 0
-        self.q_cur.fill(0.0)
-        self.t_cur.fill(0.0)
-        self.log_w.fill(0.0)
-        self._identity = np.array([0.0, 0.0, 0.0, 1.0], np.float32)
-        self.q_cur.from_numpy(np.tile(self._identity, (n, 1)))
+        self.q_cur.from_numpy(np.tile(np.array([0.0, 0.0, 0.0, 1.0], np.float32), (n, 1)))
 
     # ---- memory ----
 
