@@ -73,34 +73,19 @@ def _run(req: OdometryRequest, progress: bool) -> OdometryResult:
     with LogReader(req.log, points_topic=req.points_topic, imu_topic=req.imu_topic,
                    gt_topic=req.gt_topic) as reader:
         reader.require("points")
-        kinds = ["points"] + [k for k in ("imu", "gt") if reader.topics.get(k)]
-        use_imu = cfg.use_imu and "imu" in kinds
         odo: Odometry | None = None
-        pending: list[tuple] = []
         total = reader.count("points") or None
         if req.max_scans is not None and total is not None:
             total = min(total, req.max_scans)
-        scans = track(_scans_with_imu(reader, kinds, pending, gt_stamps, gt_poses), total,
-                      "odometry", "scans") if progress else _scans_with_imu(
-                          reader, kinds, pending, gt_stamps, gt_poses)
+        scans = lidar_imu_feed(reader, cfg.use_imu, gt_stamps, gt_poses, notes)
+        if progress:
+            scans = track(scans, total, "odometry", "scans")
         try:
-            extrinsic_known = False
-            for cloud, (imu_rows, imu_frame) in scans:
+            for cloud, imu_rows, T_lidar_imu in scans:
                 if odo is None:
                     odo = Odometry(cfg)
-                if use_imu and len(imu_rows) and not _same_clock(imu_rows, cloud.stamp_ns):
-                    use_imu = False
-                    notes.append(f"IMU stamps ({imu_rows[-1, 0]:.3f} s) are not on the "
-                                 f"LiDAR's clock ({cloud.stamp_ns * 1e-9:.3f} s): IMU ignored, "
-                                 "constant-velocity prediction used")
-                if use_imu and len(imu_rows) and not extrinsic_known:
-                    # the IMU frame is known once an IMU message has been read
-                    odo.T_lidar_imu, note = _imu_extrinsic(reader, cloud.frame_id, imu_frame)
-                    extrinsic_known = True
-                    if note:
-                        notes.append(note)
-                frames.append(odo.step(cloud.points, cloud.times_s, cloud.stamp_ns,
-                                       imu_rows if use_imu else None))
+                odo.T_lidar_imu = T_lidar_imu
+                frames.append(odo.step(cloud.points, cloud.times_s, cloud.stamp_ns, imu_rows))
                 if req.max_scans is not None and len(frames) >= req.max_scans:
                     break
         except KeyboardInterrupt:
@@ -111,6 +96,31 @@ def _run(req: OdometryRequest, progress: bool) -> OdometryResult:
         raise Mcl3dError(f"{req.log}: the point-cloud topic has no scans")
     summary = _write(paths, frames, cfg, gt_stamps, gt_poses, notes, interrupted=False)
     return OdometryResult(frames, paths, summary)
+
+
+def lidar_imu_feed(reader, use_imu: bool, gt_stamps: list, gt_poses: list, notes: list[str]):
+    """(cloud, IMU rows since the previous scan or None, T_lidar_imu) per scan, ground truth
+    appended on the way. The IMU is used when asked and present, and dropped (with a note)
+    when its stamps are not on the LiDAR's clock; its extrinsic is looked up once the first
+    IMU message names its frame (identity, with a note, when the log has none)."""
+    kinds = ["points"] + [k for k in ("imu", "gt") if reader.topics.get(k)]
+    use_imu = use_imu and "imu" in kinds
+    if not use_imu:
+        notes.append("no IMU used: the motion is predicted with constant velocity")
+    T_lidar_imu, extrinsic_known = np.eye(4), False
+    for cloud, (imu_rows, imu_frame) in _scans_with_imu(reader, kinds, [], gt_stamps,
+                                                         gt_poses):
+        if use_imu and len(imu_rows) and not _same_clock(imu_rows, cloud.stamp_ns):
+            use_imu = False
+            notes.append(f"IMU stamps ({imu_rows[-1, 0]:.3f} s) are not on the LiDAR's clock "
+                         f"({cloud.stamp_ns * 1e-9:.3f} s): IMU ignored, constant-velocity "
+                         "prediction used")
+        if use_imu and len(imu_rows) and not extrinsic_known:
+            T_lidar_imu, note = _imu_extrinsic(reader, cloud.frame_id, imu_frame)
+            extrinsic_known = True
+            if note:
+                notes.append(note)
+        yield cloud, imu_rows if use_imu else None, T_lidar_imu
 
 
 def _same_clock(imu_rows: np.ndarray, stamp_ns: int, tolerance_s: float = 1.0) -> bool:
@@ -169,6 +179,13 @@ def _write(paths, frames, cfg, gt_stamps, gt_poses, notes, interrupted: bool) ->
     return summary
 
 
+def ground_truth(gt_stamps: list, gt_poses: list) -> Trajectory:
+    """The log's ground-truth messages as a trajectory: sorted, one pose per stamp."""
+    order = np.argsort(gt_stamps, kind="stable")
+    stamps, keep = np.unique(np.asarray(gt_stamps)[order], return_index=True)
+    return Trajectory(stamps, np.asarray(gt_poses)[order][keep])
+
+
 def _evaluate(est: Trajectory, gt_stamps, gt_poses) -> dict | None:
     """ATE and RPE (per metre) after aligning the first poses, and the end-point drift as a
     percentage of the distance travelled."""
@@ -176,9 +193,7 @@ def _evaluate(est: Trajectory, gt_stamps, gt_poses) -> dict | None:
 
     if len(gt_stamps) < 2 or len(est) < 2:
         return None
-    order = np.argsort(gt_stamps, kind="stable")
-    stamps, keep = np.unique(np.asarray(gt_stamps)[order], return_index=True)
-    gt = Trajectory(stamps, np.asarray(gt_poses)[order][keep])
+    gt = ground_truth(gt_stamps, gt_poses)
     try:
         ev = evaluate(gt, est, alignment="origin", rpe_delta=1.0, rpe_unit="m")
     except Mcl3dError as exc:

@@ -70,41 +70,25 @@ def run(req: SlamRequest, progress: bool = True) -> SlamResult:
 def _run(req: SlamRequest, cfg: SlamConfig, paths: dict, progress: bool) -> SlamResult:
     from mcl3d.console import track
     from mcl3d.logs.reader import LogReader
-    from mcl3d.odometry_pipeline import _imu_extrinsic, _same_clock, _scans_with_imu
+    from mcl3d.odometry_pipeline import lidar_imu_feed
 
     gt_stamps, gt_poses, notes = [], [], []
     slam: MonteCarloSlam | None = None
     with LogReader(req.log, points_topic=req.points_topic, imu_topic=req.imu_topic,
                    gt_topic=req.gt_topic) as reader:
         reader.require("points")
-        kinds = ["points"] + [k for k in ("imu", "gt") if reader.topics.get(k)]
-        use_imu = cfg.odometry.use_imu and "imu" in kinds
-        if not use_imu:
-            notes.append("no IMU used: the odometry predicts with constant velocity")
-        pending: list[tuple] = []
         total = reader.count("points") or None
         if req.max_scans is not None and total is not None:
             total = min(total, req.max_scans)
-        scans = _scans_with_imu(reader, kinds, pending, gt_stamps, gt_poses)
+        scans = lidar_imu_feed(reader, cfg.odometry.use_imu, gt_stamps, gt_poses, notes)
         if progress:
             scans = track(scans, total, "slam", "scans")
         try:
-            extrinsic_known = False
-            for cloud, (imu_rows, imu_frame) in scans:
+            for cloud, imu_rows, T_lidar_imu in scans:
                 if slam is None:
                     slam = MonteCarloSlam(cfg)
-                if use_imu and len(imu_rows) and not _same_clock(imu_rows, cloud.stamp_ns):
-                    use_imu = False
-                    notes.append("IMU stamps are not on the LiDAR's clock: IMU ignored, "
-                                 "constant-velocity prediction used")
-                if use_imu and len(imu_rows) and not extrinsic_known:
-                    slam.odometry.T_lidar_imu, note = _imu_extrinsic(reader, cloud.frame_id,
-                                                                      imu_frame)
-                    extrinsic_known = True
-                    if note:
-                        notes.append(note)
-                slam.step(cloud.points, cloud.times_s, cloud.stamp_ns,
-                          imu_rows if use_imu else None)
+                slam.odometry.T_lidar_imu = T_lidar_imu
+                slam.step(cloud.points, cloud.times_s, cloud.stamp_ns, imu_rows)
                 if req.max_scans is not None and len(slam.frames) >= req.max_scans:
                     break
         except KeyboardInterrupt:
@@ -208,12 +192,11 @@ def _summary(slam: MonteCarloSlam, traj, online, odometry, gt_stamps, gt_poses, 
 def _evaluate(trajectories: dict[str, Trajectory], gt_stamps, gt_poses) -> dict | None:
     """ATE (SE(3)-aligned, as `evo_ape -a`) of each trajectory against the ground truth."""
     from mcl3d.evaluation import evaluate
+    from mcl3d.odometry_pipeline import ground_truth
 
     if len(gt_stamps) < 2:
         return None
-    order = np.argsort(gt_stamps, kind="stable")
-    stamps, keep = np.unique(np.asarray(gt_stamps)[order], return_index=True)
-    gt = Trajectory(stamps, np.asarray(gt_poses)[order][keep])
+    gt = ground_truth(gt_stamps, gt_poses)
     out = {}
     for name, est in trajectories.items():
         if len(est) < 3:
