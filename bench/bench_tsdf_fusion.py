@@ -5,14 +5,16 @@
    truncation of 4 voxels. mcl3d (Taichi) is timed per scan (host preparation + block
    allocation + band + free-space carving), in its two distance modes: point-to-plane with
    normals (the default; normal estimation is timed separately, it runs in Open3D on the
-   host) and projective (no normals), with and without free-space carving (Open3D does
-   none beyond its truncation band). The point-to-plane fusion is also split into its
-   stages: host preparation, allocation, band, carving (carving = the update with carving
-   minus the update without). The baseline, in the same run on the same threads, is
-   Open3D's tensor VoxelBlockGrid integration of the same scan: the points are projected
-   into 4 pinhole depth images (90° each) and each is integrated (block lookup +
-   integrate), the way a projective TSDF takes a spinning lidar (Open3D allocates blocks
-   from every 4th pixel of every 4th row only, so it stores about a third of our blocks).
+   host) and projective (no normals), each with and without free-space carving (the fast
+   configuration, `carve_free_space: false` in a build-map --config file: Open3D does
+   none beyond its truncation band; the map then knows no free space outside the band).
+   The point-to-plane fusion is also split into its stages: host preparation, allocation,
+   band, carving (carving = the update with carving minus the update without). The
+   baseline, in the same run on the same threads, is Open3D's tensor VoxelBlockGrid
+   integration of the same scan: the points are projected into 4 pinhole depth images
+   (90° each) and each is integrated (block lookup + integrate), the way a projective TSDF
+   takes a spinning lidar (Open3D allocates blocks from every 4th pixel of every 4th row
+   only, so it stores about a third of our blocks).
    The methods take turns, one scan each per round (a warm-up round first; compile time
    excluded), so load from other work hits them alike; ratios are per round (Open3D's time
    over ours in the same round), reported as median and min..max over rounds. The map is
@@ -248,6 +250,7 @@ def main() -> None:
         "point_to_plane": _Ours(points, T, geometry, normals, "knn"),
         "projective": _Ours(points, T, geometry, None, "none"),
         "projective_no_carving": _Ours(points, T, geometry, None, "none", carve=False),
+        "point_to_plane_no_carving": _Ours(points, T, geometry, normals, "knn", carve=False),
         "open3d": _Open3D(points, T),
     }
     stages_of = methods["point_to_plane"]
@@ -277,6 +280,7 @@ def main() -> None:
     labels = {"point_to_plane": "mcl3d point-to-plane (fuse)",
               "projective": "mcl3d projective",
               "projective_no_carving": "mcl3d projective, no carving (as Open3D)",
+              "point_to_plane_no_carving": "mcl3d point-to-plane, no carving",
               "open3d": "Open3D VoxelBlockGrid (4 depth images)"}
     print(f"\nTSDF fusion of one {BEAMS}x{COLUMNS} scan ({len(points)} points; Open3D gets "
           f"{methods['open3d'].pixels} depth pixels), {VOXEL * 100:.0f} cm voxels, trunc 4 "

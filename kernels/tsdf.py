@@ -315,13 +315,47 @@ def unmark_free_voxels(m: ti.template(), start: ti.i32, count: ti.i32):
 
 # --------------------------------------------------------------------- scan fusion
 @ti.func
+def exp_nonpositive(x: ti.f32) -> ti.f32:
+    """exp(x) for x <= 0 (flushed to 2^-126 below -87): absolute error under 3e-7,
+    relative error under 5e-6 (it grows with |x| where cpu fast math merges the two ln2 parts).
+
+    The band weights take one exp per voxel sample, a large share of fusion on cpu, where
+    ti.exp is a libm call: 2^n * e^f with n = round(x log2 e) and f = x - n ln2 (ln2 split
+    in two parts, so n ln2 loses no bits), |f| <= ln2 / 2, e^f by its degree-6 Taylor
+    polynomial (remainder < 1.2e-7), 2^n by building the float's exponent bits. The same
+    arithmetic on every backend.
+    """
+    xc = ti.max(x, -87.0)
+    n = ti.floor(xc * 1.4426950408889634 + 0.5)
+    f = (xc - n * 0.693145751953125) - n * 1.428606765330187e-06
+    e_f = 1.0 + f * (1.0 + f * (0.5 + f * (1.0 / 6.0 + f * (1.0 / 24.0 + f * (
+        1.0 / 120.0 + f * (1.0 / 720.0))))))
+    return e_f * ti.bit_cast((ti.cast(n, ti.i32) + 127) << 23, ti.f32)
+
+
+@ti.func
+def block_id(m: ti.template(), bc: ivec3) -> ti.i32:
+    """coarse[bc]: the pool id of block bc, or UNKNOWN outside the grid."""
+    b = UNKNOWN
+    if (0 <= bc[0] < m.coarse_dims[0] and 0 <= bc[1] < m.coarse_dims[1]
+            and 0 <= bc[2] < m.coarse_dims[2]):
+        b = m.coarse[bc[0], bc[1], bc[2]]
+    return b
+
+
+@ti.func
+def add_sums(m: ti.template(), b: ti.i32, g: ivec3, wd: ti.f32, w: ti.f32):
+    """Add summed observations (sum of w*d, sum of w) to voxel g of pool block b."""
+    ti.atomic_add(m.sdf[b, g[0] & 7, g[1] & 7, g[2] & 7], wd)
+    ti.atomic_add(m.weight[b, g[0] & 7, g[1] & 7, g[2] & 7], w)
+
+
+@ti.func
 def accumulate_sums(m: ti.template(), g: ivec3, wd: ti.f32, w: ti.f32):
     """Add summed observations (sum of w*d, sum of w) to voxel g, if its block exists."""
-    if in_grid(m, g):
-        b = m.coarse[g[0] >> 3, g[1] >> 3, g[2] >> 3]
-        if b >= 0:
-            ti.atomic_add(m.sdf[b, g[0] & 7, g[1] & 7, g[2] & 7], wd)
-            ti.atomic_add(m.weight[b, g[0] & 7, g[1] & 7, g[2] & 7], w)
+    b = block_id(m, g >> 3)
+    if b >= 0:
+        add_sums(m, b, g, wd, w)
 
 
 @ti.func
@@ -352,9 +386,13 @@ def ray_setup(p_l: vec3, n_l: vec3, alpha: ti.f32, q0: vec4, t0: vec3, delta: ve
     """World point, sensor origin, ray direction, range, surface normal (facing the
     sensor; the reversed ray without normals) and the |cos| of the incidence angle.
 
-    The pose is interpolated at the point's time (deskewing).
+    The pose is interpolated at the point's time (deskewing); a scan without motion skips
+    the slerp (the same q, bit for bit: its factor exp(0) is exactly the identity).
     """
-    q = quat_normalize(quat_mul(q0, quat_exp(alpha * delta)))  # slerp, as pose_interpolate
+    q = q0
+    if (delta != 0.0).any():
+        q = quat_mul(q0, quat_exp(alpha * delta))  # slerp, as pose_interpolate
+    q = quat_normalize(q)
     t = t0 + alpha * (t1 - t0)
     p = quat_rotate(q, p_l) + t
     r = (p - t).norm()
@@ -414,9 +452,14 @@ def scan_allocate(m: ti.template(), pts: ti.types.ndarray(dtype=vec3, ndim=1),
                   alpha: ti.types.ndarray(dtype=ti.f32, ndim=1), n: ti.i32,
                   q0: vec4, t0: vec3, q1: vec4, t1: vec3, min_range: ti.f32,
                   max_range: ti.f32, spacing_rad: ti.f32, behind_m: ti.f32,
-                  use_normals: ti.template()):
+                  use_normals: ti.template(), ray_p: ti.types.ndarray(dtype=vec4, ndim=1),
+                  ray_n: ti.types.ndarray(dtype=vec4, ndim=1)):
     """Pass 1 of a scan: allocate the blocks that hold samples of each point's band patch
     (exactly those scan_fuse visits), testing as few samples as that takes.
+
+    Each point's ray setup (deskewed world point, normal) is kept for pass 2, which would
+    otherwise repeat it: ray_p[i] = (world point, range), ray_n[i] = (normal facing the
+    sensor, |cos incidence|), the latter 0 for a point that is skipped (out of range).
 
     The samples lie in the parallelepiped of the 8 corner samples (the 4 corner columns at
     their first and last depth), so when the corners' blocks fill the box of blocks they
@@ -426,9 +469,12 @@ def scan_allocate(m: ti.template(), pts: ti.types.ndarray(dtype=vec3, ndim=1),
     """
     delta = scan_motion(q0, q1)
     for i in range(n):
+        ray_n[i] = vec4(0.0)
         if point_ok(pts[i], min_range, max_range):
-            p, _o, _u, r, nr, _c = ray_setup(pts[i], nrm[i], alpha[i], q0, t0, delta, t1,
-                                             use_normals)
+            p, _o, _u, r, nr, c = ray_setup(pts[i], nrm[i], alpha[i], q0, t0, delta, t1,
+                                            use_normals)
+            ray_p[i] = vec4(p, r)
+            ray_n[i] = vec4(nr, c)
             k = footprint_steps(m, r, spacing_rad)
             e1, e2 = patch_tangents(nr, k)
             pg = world_to_grid(m, p)  # the same sample positions as scan_fuse
@@ -584,8 +630,12 @@ def band_patch(m: ti.template(), p: vec3, nr: vec3, k: ti.i32, behind_m: ti.f32,
     trunc = m.truncation_m
     pg = world_to_grid(m, p)  # sample (a, b, j) is at column_base(a, b) + s_j nv
     nv = nr * (1.0 / m.voxel_size_m)
+    cb = ivec3(-(1 << 30))  # the block of the last sample and its id: runs of samples
+    bid = UNKNOWN  # in one block look it up once
     for a, b in ti.ndrange(k + 1, k + 1):
         base = column_base(pg, e1, e2, k, a, b)
+        base_a = column_base(pg, e1, e2, k, a - 1, b)  # the columns before it along a, b
+        base_b = column_base(pg, e1, e2, k, a, b - 1)
         last = ivec3(-(1 << 30))
         for j in range(band_samples(m, behind_m)):
             s = ti.min(-behind_m + j * m.voxel_size_m, trunc)
@@ -596,27 +646,30 @@ def band_patch(m: ti.template(), p: vec3, nr: vec3, k: ti.i32, behind_m: ti.f32,
                 # skip it when column a-1 or b-1 put its sample at this depth into it
                 seen = False
                 if a > 0:
-                    seen = (ti.cast(ti.floor(column_base(pg, e1, e2, k, a - 1, b) + s * nv),
-                                    ti.i32) == g).all()
+                    seen = (ti.cast(ti.floor(base_a + s * nv), ti.i32) == g).all()
                 if b > 0 and not seen:
-                    seen = (ti.cast(ti.floor(column_base(pg, e1, e2, k, a, b - 1) + s * nv),
-                                    ti.i32) == g).all()
+                    seen = (ti.cast(ti.floor(base_b + s * nv), ti.i32) == g).all()
                 if not seen:
                     v = voxel_center(m, g) - p
                     d = v.dot(nr)
                     if -behind_m <= d <= trunc:
-                        accumulate(m, g, d, ti.exp(k_w * v.dot(v)))
+                        if ((g >> 3) != cb).any():
+                            cb = g >> 3
+                            bid = block_id(m, cb)
+                        if bid >= 0:
+                            w = exp_nonpositive(k_w * v.dot(v))
+                            add_sums(m, bid, g, w * d, w)
 
 
 @ti.kernel
-def scan_fuse(m: ti.template(), pts: ti.types.ndarray(dtype=vec3, ndim=1),
-              nrm: ti.types.ndarray(dtype=vec3, ndim=1),
-              alpha: ti.types.ndarray(dtype=ti.f32, ndim=1), n: ti.i32,
-              q0: vec4, t0: vec3, q1: vec4, t1: vec3, min_range: ti.f32,
-              max_range: ti.f32, spacing_rad: ti.f32, behind_m: ti.f32,
-              use_normals: ti.template(), carve: ti.template(), sigma_weight_m: ti.f32,
-              run_length: ti.i32):
-    """Pass 2 of a scan: the truncation band around each point + free-space carving.
+def scan_fuse(m: ti.template(), ray_p: ti.types.ndarray(dtype=vec4, ndim=1),
+              ray_n: ti.types.ndarray(dtype=vec4, ndim=1),
+              alpha: ti.types.ndarray(dtype=ti.f32, ndim=1), n: ti.i32, t0: vec3, t1: vec3,
+              spacing_rad: ti.f32, behind_m: ti.f32, carve: ti.template(),
+              sigma_weight_m: ti.f32, run_length: ti.i32):
+    """Pass 2 of a scan: the truncation band around each point + free-space carving, from
+    the rays that scan_allocate set up (ray_p, ray_n; t0, t1 and alpha give each ray's
+    sensor position).
 
     Band: voxels on a patch of the point's tangent plane (half the gap to the next ray
     wide, so sparse far rays leave no holes), from behind_m behind the surface to the
@@ -637,7 +690,6 @@ def scan_fuse(m: ti.template(), pts: ti.types.ndarray(dtype=vec3, ndim=1),
     leaves it. The sums are those of updating voxel by voxel, only added in another order,
     so run_length changes no result beyond f32 rounding.
     """
-    delta = scan_motion(q0, q1)
     trunc = m.truncation_m
     k_w = -0.5 / (sigma_weight_m * sigma_weight_m)
     n_max = ti.static(max_band_samples(m))
@@ -646,10 +698,16 @@ def scan_fuse(m: ti.template(), pts: ti.types.ndarray(dtype=vec3, ndim=1),
         slot_g = ti.Matrix.zero(ti.i32, n_max, 3)
         slot_wd = ti.Vector.zero(ti.f32, n_max)
         slot_w = ti.Vector.zero(ti.f32, n_max)
+        cb = ivec3(-(1 << 30))  # the block of the last flushed slot and its id
+        bid = UNKNOWN
         for i in range(run * run_length, ti.min(n, (run + 1) * run_length)):
-            if point_ok(pts[i], min_range, max_range):
-                p, o, u, r, nr, c = ray_setup(pts[i], nrm[i], alpha[i], q0, t0, delta, t1,
-                                              use_normals)
+            c = ray_n[i][3]
+            if c > 0.0:
+                p = ray_p[i].xyz
+                r = ray_p[i][3]
+                nr = ray_n[i].xyz
+                o = t0 + alpha[i] * (t1 - t0)  # as ray_setup
+                u = (p - o) / ti.max(r, 1e-9)
                 if ti.static(carve):
                     carve_ray(m, o, u, r - trunc / c)
                 k = footprint_steps(m, r, spacing_rad)
@@ -669,13 +727,16 @@ def scan_fuse(m: ti.template(), pts: ti.types.ndarray(dtype=vec3, ndim=1),
                                 v = voxel_center(m, g) - p
                                 d = v.dot(nr)
                                 if -behind_m <= d <= trunc:
-                                    w = ti.exp(k_w * v.dot(v))
+                                    w = exp_nonpositive(k_w * v.dot(v))
                                     same = (slot_g[j, 0] == g[0] and slot_g[j, 1] == g[1]
                                             and slot_g[j, 2] == g[2])
                                     if slot_w[j] > 0.0 and not same:
-                                        accumulate_sums(m, ivec3(slot_g[j, 0], slot_g[j, 1],
-                                                                 slot_g[j, 2]),
-                                                        slot_wd[j], slot_w[j])
+                                        gs = ivec3(slot_g[j, 0], slot_g[j, 1], slot_g[j, 2])
+                                        if ((gs >> 3) != cb).any():
+                                            cb = gs >> 3
+                                            bid = block_id(m, cb)
+                                        if bid >= 0:
+                                            add_sums(m, bid, gs, slot_wd[j], slot_w[j])
                                         slot_w[j] = 0.0
                                         slot_wd[j] = 0.0
                                     for a in ti.static(range(3)):
@@ -724,4 +785,4 @@ def points_fuse(m: ti.template(), pts: ti.types.ndarray(dtype=vec3, ndim=1),
         v = voxel_center(m, g) - p
         d = v.dot(nr)
         if -behind_m <= d <= trunc:
-            accumulate(m, g, d, ti.exp(k * v.dot(v)))
+            accumulate(m, g, d, exp_nonpositive(k * v.dot(v)))

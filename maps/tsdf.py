@@ -155,9 +155,9 @@ class TsdfMap:
         pool = builder.dense(ti.i, self.capacity).dense(ti.jkl, BLOCK)
         pool.place(self.sdf)
         pool.place(self.weight)
-        if writable:
+        if writable:  # its own array: the band's distance and weight stay packed
             self.free_hits = ti.field(ti.f32)
-            pool.place(self.free_hits)
+            builder.dense(ti.i, self.capacity).dense(ti.jkl, BLOCK).place(self.free_hits)
         self._tree = builder.finalize()
         self._used_slots = 0  # pool slots [used, capacity) still hold zeros (never written)
         self.clear()

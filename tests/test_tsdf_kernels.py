@@ -131,6 +131,13 @@ def _pool_sums(tsdf):
     return data, got
 
 
+def _ray_buffers(n):
+    """The per-point rays scan_allocate sets up for scan_fuse."""
+    import taichi as ti
+
+    return ti.ndarray(ti.math.vec4, shape=n), ti.ndarray(ti.math.vec4, shape=n)
+
+
 def test_fusion_of_a_ray_and_a_scan_line_matches_numpy(ti_runtime):
     """One ray in full (band, carving, finalize), then a scan line on the same map (the
     kernels compile once per map)."""
@@ -147,11 +154,12 @@ def test_fusion_of_a_ray_and_a_scan_line_matches_numpy(ti_runtime):
     pts = (point - origin).astype(np.float32)[None]
     q = ti.math.vec4(0, 0, 0, 1)
     t = ti.math.vec3(*origin)
-    args = (pts, np.zeros_like(pts), np.zeros(1, np.float32), 1, q, t, q, t, 0.1, 100.0, 0.0,
-            behind, False)
-    k.scan_allocate(tsdf, *args)
+    alpha = np.zeros(1, np.float32)
+    rays = _ray_buffers(1)
+    k.scan_allocate(tsdf, pts, np.zeros_like(pts), alpha, 1, q, t, q, t, 0.1, 100.0, 0.0,
+                    behind, False, *rays)
     tsdf.init_new_blocks(0, tsdf.requested_blocks)
-    k.scan_fuse(tsdf, *args, True, sigma, 64)
+    k.scan_fuse(tsdf, *rays, alpha, 1, t, t, 0.0, behind, True, sigma, 64)
     band, free_hits, blocks, free_blocks = _ray_reference(origin, point, tsdf, behind, sigma)
     data, got = _pool_sums(tsdf)
     assert {tuple(c) for c in data.coords} == blocks
@@ -190,8 +198,10 @@ def _check_scan_line(tsdf):
     pts = np.array([p - origin for p in points], np.float32)
     q = ti.math.vec4(0, 0, 0, 1)
     t = ti.math.vec3(*origin)
-    args = (pts, np.zeros_like(pts), np.zeros(len(pts), np.float32), len(pts), q, t, q, t,
-            0.1, 100.0, 0.0, behind, False)
+    alpha = np.zeros(len(pts), np.float32)
+    rays = _ray_buffers(len(pts))
+    args = (pts, np.zeros_like(pts), alpha, len(pts), q, t, q, t, 0.1, 100.0, 0.0, behind, False,
+            *rays)
     sums, free_hits, blocks, free_blocks = _scan_reference(origin, points, tsdf, behind, sigma)
     assert len(sums) > 15 and len(free_hits) > 10 and free_blocks
     for run_length in (1, 3, 64):
@@ -199,7 +209,7 @@ def _check_scan_line(tsdf):
         tsdf.as_sums = True
         k.scan_allocate(tsdf, *args)
         tsdf.init_new_blocks(0, tsdf.requested_blocks)
-        k.scan_fuse(tsdf, *args, True, sigma, run_length)
+        k.scan_fuse(tsdf, *rays, alpha, len(pts), t, t, 0.0, behind, True, sigma, run_length)
         data, got = _pool_sums(tsdf)
         assert {tuple(b) for b in data.coords} == blocks
         assert {tuple(b) for b in data.free_coords} == free_blocks
@@ -315,3 +325,31 @@ def test_gradient_is_the_derivative_of_trilinear(ti_runtime):
     smooth = np.all(np.abs(g - np.round(g)) > 0.05, axis=1)
     assert smooth.sum() > 20
     np.testing.assert_allclose(out[smooth, 1:], numeric[smooth], atol=0.05)
+
+
+def test_band_weight_exp_matches_numpy(ti_runtime):
+    """exp_nonpositive (the band weights' exp) against np.exp over the whole f32 range it
+    takes: absolute error under 3e-7 (weights are at most 1), relative under 5e-6 down to
+    -87, flushed to tiny values below."""
+    import taichi as ti
+
+    from mcl3d.kernels.tsdf import exp_nonpositive
+
+    @ti.kernel
+    def run(x: ti.types.ndarray(dtype=ti.f32, ndim=1), out: ti.types.ndarray(dtype=ti.f32,
+                                                                              ndim=1)):
+        for i in range(x.shape[0]):
+            out[i] = exp_nonpositive(x[i])
+
+    x = np.concatenate([-np.geomspace(1e-8, 87.0, 4000), [0.0, -0.5 * np.log(2), -1e-30],
+                        -np.linspace(0, 20, 4001)]).astype(np.float32)
+    out = np.zeros_like(x)
+    run(x, out)
+    ref = np.exp(x.astype(np.float64))
+    assert np.max(np.abs(out - ref)) < 3e-7
+    assert np.max(np.abs(out / ref - 1)) < 5e-6
+    assert out[x == 0][0] == 1.0
+    big = np.array([-88.0, -200.0, -1e30], np.float32)
+    tiny = np.zeros_like(big)
+    run(big, tiny)
+    assert np.all((tiny >= 0) & (tiny < 2e-38))
