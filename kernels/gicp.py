@@ -25,7 +25,8 @@ before the plane form and the home-slot split described in `linearize`).
 per pose and whole rows per task stores them straight into its group) and `reduce_tasks`
 adds them up in a fixed order, so results are the same bits on every run; `step` then
 solves every group's system (Jacobi-scaled, unrolled 6x6 Cholesky) with Gauss-Newton or
-Levenberg-Marquardt acceptance and proposes the next candidate.
+Levenberg-Marquardt acceptance and proposes the next candidate. The three are Taichi
+functions run by the one kernel `iterate`: one launch per iteration.
 """
 
 import taichi as ti
@@ -133,7 +134,7 @@ def sym_to_mat(c: vec6) -> ti.math.mat3:
     return ti.math.mat3([[c[0], c[1], c[2]], [c[1], c[3], c[4]], [c[2], c[4], c[5]]])
 
 
-@ti.kernel
+@ti.func
 def linearize(src_pts: ti.template(), src_cov: ti.template(), row_group: ti.template(),
               row_map: ti.template(), row_q: ti.template(), row_t: ti.template(),
               row_start: ti.template(), row_count: ti.template(), num_rows: ti.i32,
@@ -250,7 +251,7 @@ def linearize(src_pts: ti.template(), src_cov: ti.template(), row_group: ti.temp
                 acc_n[slot] = n
 
 
-@ti.kernel
+@ti.func
 def reduce_tasks(num_rows: ti.i32, num_chunks: ti.i32, row_group: ti.template(),
                  status: ti.template(), task_H: ti.template(), task_b: ti.template(),
                  task_e: ti.template(), task_n: ti.template(), acc_H: ti.template(),
@@ -328,7 +329,7 @@ def damped_step(H, b, lam: ti.f32):
     return d * y
 
 
-@ti.kernel
+@ti.func
 def step(num_groups: ti.i32, use_lm: ti.i32, rot_eps: ti.f32, trans_eps: ti.f32,
          q_cur: ti.template(), t_cur: ti.template(), q_cand: ti.template(),
          t_cand: ti.template(), lam: ti.template(), status: ti.template(),
@@ -384,7 +385,36 @@ def step(num_groups: ti.i32, use_lm: ti.i32, rot_eps: ti.f32, trans_eps: ti.f32,
 
 
 @ti.kernel
-def reset_groups(num_groups: ti.i32, lm_lambda: ti.f32, q_cur: ti.template(),
+def iterate(src_pts: ti.template(), src_cov: ti.template(), row_group: ti.template(),
+            row_map: ti.template(), row_q: ti.template(), row_t: ti.template(),
+            row_start: ti.template(), row_count: ti.template(), num_rows: ti.i32, chunk: ti.i32,
+            num_chunks: ti.i32, vox: ti.template(), res: ti.template(), buckets: ti.i32,
+            max_probes: ti.i32, task_H: ti.template(), task_b: ti.template(),
+            task_e: ti.template(), task_n: ti.template(), exclusive: ti.template(),
+            plane_cov: ti.template(), one_row_per_group: ti.template(), num_groups: ti.i32,
+            use_lm: ti.i32, rot_eps: ti.f32, trans_eps: ti.f32, q_cur: ti.template(),
+            t_cur: ti.template(), q_cand: ti.template(), t_cand: ti.template(),
+            lam: ti.template(), status: ti.template(), iters: ti.template(),
+            acc_H: ti.template(), acc_b: ti.template(), acc_e: ti.template(),
+            acc_n: ti.template(), best_H: ti.template(), best_b: ti.template(),
+            best_e: ti.template(), best_n: ti.template(), serial: ti.template()) -> ti.i32:
+    """One Gauss-Newton/LM iteration of every running group in one launch: `linearize`
+    (into task_* sums, which are the acc_* fields when `exclusive`), `reduce_tasks` (unless
+    `exclusive`), then `step`; returns how many groups run on. One launch instead of three
+    matters for small problems (a scan of odometry), where launching costs more than the math."""
+    linearize(src_pts, src_cov, row_group, row_map, row_q, row_t, row_start, row_count,
+              num_rows, chunk, num_chunks, q_cand, t_cand, status, vox, res, buckets,
+              max_probes, task_H, task_b, task_e, task_n, exclusive, plane_cov)
+    if ti.static(not exclusive):
+        reduce_tasks(num_rows, num_chunks, row_group, status, task_H, task_b, task_e, task_n,
+                     acc_H, acc_b, acc_e, acc_n, one_row_per_group)
+    return step(num_groups, use_lm, rot_eps, trans_eps, q_cur, t_cur, q_cand, t_cand, lam,
+                status, iters, acc_H, acc_b, acc_e, acc_n, best_H, best_b, best_e, best_n,
+                serial)
+
+
+@ti.func
+def reset(num_groups: ti.i32, lm_lambda: ti.f32, q_cur: ti.template(),
                  t_cur: ti.template(), q_cand: ti.template(), t_cand: ti.template(),
                  lam: ti.template(), status: ti.template(), iters: ti.template(),
                  acc_H: ti.template(), acc_b: ti.template(), acc_e: ti.template(),
@@ -406,6 +436,16 @@ def reset_groups(num_groups: ti.i32, lm_lambda: ti.f32, q_cur: ti.template(),
 
 
 @ti.kernel
+def reset_groups(num_groups: ti.i32, lm_lambda: ti.f32, q_cur: ti.template(),
+                 t_cur: ti.template(), q_cand: ti.template(), t_cand: ti.template(),
+                 lam: ti.template(), status: ti.template(), iters: ti.template(),
+                 acc_H: ti.template(), acc_b: ti.template(), acc_e: ti.template(),
+                 acc_n: ti.template(), best_n: ti.template(), serial: ti.template()):
+    reset(num_groups, lm_lambda, q_cur, t_cur, q_cand, t_cand, lam, status, iters, acc_H,
+          acc_b, acc_e, acc_n, best_n, serial)
+
+
+@ti.kernel
 def upload_source(src: ti.types.ndarray(), n: ti.i32, src_pts: ti.template(),
                   src_cov: ti.template()):
     """Rows (x, y, z, c0..c5) into the source pool: one launch instead of two, on the calling
@@ -422,10 +462,14 @@ def upload_problem(rows_i: ti.types.ndarray(), rows_f: ti.types.ndarray(), num_r
                    poses: ti.types.ndarray(), num_groups: ti.i32, row_group: ti.template(),
                    row_map: ti.template(), row_start: ti.template(), row_count: ti.template(),
                    row_q: ti.template(), row_t: ti.template(), q_cand: ti.template(),
-                   t_cand: ti.template()):
-    """Rows (group, map, start, count | q, t of the left pose) and the initial poses (q, t):
-    one launch instead of eight, on the calling thread, which matters per scan (odometry)
-    on a busy machine."""
+                   t_cand: ti.template(), lm_lambda: ti.f32, q_cur: ti.template(),
+                   t_cur: ti.template(), lam: ti.template(), status: ti.template(),
+                   iters: ti.template(), acc_H: ti.template(), acc_b: ti.template(),
+                   acc_e: ti.template(), acc_n: ti.template(), best_n: ti.template(),
+                   serial: ti.template()):
+    """Rows (group, map, start, count | q, t of the left pose) and the initial poses (q, t),
+    then `reset_groups`: one launch instead of nine, on the calling thread, which matters per
+    scan (odometry) on a busy machine."""
     ti.loop_config(serialize=True)
     for r in range(num_rows):
         row_group[r] = rows_i[r, 0]
@@ -438,6 +482,8 @@ def upload_problem(rows_i: ti.types.ndarray(), rows_f: ti.types.ndarray(), num_r
     for g in range(num_groups):
         q_cand[g] = ti.math.vec4(poses[g, 0], poses[g, 1], poses[g, 2], poses[g, 3])
         t_cand[g] = vec3(poses[g, 4], poses[g, 5], poses[g, 6])
+    reset(num_groups, lm_lambda, q_cur, t_cur, q_cand, t_cand, lam, status, iters, acc_H,
+          acc_b, acc_e, acc_n, best_n, serial)
 
 
 RESULT_COLUMNS = 53  # q (4), t (3), H (36), b (6), error, inliers, iterations, status

@@ -197,17 +197,20 @@ def finalize(vox: ti.template(), count: ti.template(), vsum: ti.template(),
 
 
 @ti.kernel
-def count_hits(pts: ti.template(), n: ti.i32, map_ids: ti.template(), map_q: ti.template(),
-               map_t: ti.template(), num_maps: ti.i32, res: ti.template(), buckets: ti.i32,
-               max_probes: ti.i32, vox: ti.template()) -> ti.i32:
+def count_hits(pts: ti.template(), n: ti.i32, queries: ti.types.ndarray(), num_maps: ti.i32,
+               res: ti.template(), buckets: ti.i32, max_probes: ti.i32,
+               vox: ti.template()) -> ti.i32:
     """How many points land in an occupied voxel of at least one of the listed maps, each
-    point taken into map k's frame by (map_q[k], map_t[k]) (the overlap numerator)."""
+    point taken into map k's frame by the pose in queries[k] = (map id, qx, qy, qz, qw,
+    tx, ty, tz) (the overlap numerator; list the likeliest map first, a hit ends the search)."""
     hits = 0
     for i in range(n):
         hit = 0
         for k in range(num_maps):
-            m = map_ids[k]
-            p = quat_to_mat(map_q[k]) @ pts[i] + map_t[k]
+            m = ti.cast(queries[k, 0], ti.i32)
+            q = ti.math.vec4(queries[k, 1], queries[k, 2], queries[k, 3], queries[k, 4])
+            t = vec3(queries[k, 5], queries[k, 6], queries[k, 7])
+            p = quat_to_mat(q) @ pts[i] + t
             if lookup(vox, voxel_coord(p, res[m]), m, buckets, max_probes) >= 0:
                 hit = 1
                 break
@@ -227,3 +230,18 @@ def gather_voxels(vox: ti.template(), count: ti.template(), begin: ti.i32, end: 
                 out_mean[j, a] = vox[s].mean[a]
                 for b in ti.static(range(3)):
                     out_cov[j, a, b] = vox[s].cov[a, b]
+
+
+@ti.kernel
+def stage_rows(src_pts: ti.template(), src_rows: ti.template(), n: ti.i32,
+               plane: ti.template(), pts: ti.template(), covs: ti.template()):
+    """Device points with covariance rows (upper triangle xx xy xz yy yz zz, or (n, α, β, 0)
+    for αI + βnnᵀ with `plane`) into the staging fields of an insertion."""
+    for i in range(n):
+        pts[i] = src_pts[i]
+        r = src_rows[i]
+        if ti.static(plane):
+            nv = vec3(r[0], r[1], r[2])
+            covs[i] = r[3] * ti.math.eye(3) + r[4] * nv.outer_product(nv)
+        else:
+            covs[i] = mat3([[r[0], r[1], r[2]], [r[1], r[3], r[4]], [r[2], r[4], r[5]]])

@@ -1,9 +1,9 @@
 """GICP for a batch of poses against Gaussian voxel maps, on the device.
 
 `BatchGicp` owns fixed-capacity fields (source points, rows, per-pose optimizer state) and
-drives kernels/gicp.py: one `linearize` + one `step` launch per Gauss-Newton/LM iteration for
-the whole batch. One pose (pairwise registration), a scan against several keyframe maps, and
-10,000 particles x 3 keyframes all go through the same two kernels.
+drives kernels/gicp.py: one `iterate` launch (linearize, reduce, step) per Gauss-Newton/LM
+iteration for the whole batch. One pose (pairwise registration), a scan against several
+keyframe maps, and 10,000 particles x 3 keyframes all go through the same kernel.
 """
 
 from __future__ import annotations
@@ -152,6 +152,29 @@ class BatchGicp:
                                self.src_pts, self.src_cov)
         self.num_source = len(pts)
 
+    def use_device_source(self, num_points: int, plane_covs: bool) -> None:
+        """Take the first `num_points` of `src_pts` / `src_cov` as the source pool, written
+        there on the device (preprocess.ScanGrid): rows (n, α, β, 0) when `plane_covs`,
+        else upper triangles (xx xy xz yy yz zz)."""
+        if not 0 <= num_points <= self.max_source_points:
+            raise ConfigError(f"source has {num_points} points; this GICP holds at most "
+                              f"{self.max_source_points}")
+        self.num_source = int(num_points)
+        self.plane_covs = bool(plane_covs)
+
+    def source(self) -> tuple[np.ndarray, np.ndarray]:
+        """The source pool back on the host: points (N, 3) and covariances (N, 3, 3)."""
+        from mcl3d.preprocess import download_rows, plane_rows_to_covs
+
+        pts, rows = download_rows(self.src_pts, self.src_cov, self.num_source)
+        if self.plane_covs:
+            return pts, plane_rows_to_covs(rows)
+        iu, ju = np.triu_indices(3)
+        covs = np.zeros((len(pts), 3, 3))
+        covs[:, iu, ju] = rows
+        covs[:, ju, iu] = rows
+        return pts, covs
+
     def set_problem(self, T_init: np.ndarray, row_group: np.ndarray, row_map: np.ndarray,
                     T_left: np.ndarray | None = None, row_start: np.ndarray | None = None,
                     row_count: np.ndarray | None = None, lm_lambda: float = 1e-3) -> int:
@@ -188,9 +211,10 @@ class BatchGicp:
                                      np.float32)
         gicp.upload_problem(rows_i, rows_f, R, poses, G, self.row_group, self.row_map,
                             self.row_start, self.row_count, self.row_q, self.row_t,
-                            self.q_cand, self.t_cand)
-        self.start(G, R, int(count.max()), lm_lambda,
-                   one_row_per_group=len(np.unique(row_group)) == R)
+                            self.q_cand, self.t_cand, lm_lambda, self.q_cur, self.t_cur,
+                            self.lam, self.status, self.iters, self.acc_H, self.acc_b,
+                            self.acc_e, self.acc_n, self.best_n, G < SERIAL_GROUPS)
+        self._started(G, R, int(count.max()), one_row_per_group=len(np.unique(row_group)) == R)
         return G
 
     def start(self, num_groups: int, num_rows: int, max_row_points: int,
@@ -207,6 +231,10 @@ class BatchGicp:
                           self.t_cand, self.lam, self.status, self.iters, self.acc_H,
                           self.acc_b, self.acc_e, self.acc_n, self.best_n,
                           num_groups < SERIAL_GROUPS)
+        self._started(num_groups, num_rows, max_row_points, one_row_per_group)
+
+    def _started(self, num_groups: int, num_rows: int, max_row_points: int,
+                 one_row_per_group: bool) -> None:
         self._rows, self._groups, self._max_count = num_rows, num_groups, max_row_points
         self._one_row_per_group = one_row_per_group
 
@@ -229,19 +257,16 @@ class BatchGicp:
         exclusive = self._one_row_per_group and num_chunks == 1
         sums = (self.acc_H, self.acc_b, self.acc_e, self.acc_n) if exclusive else \
             self._task_sums(self._rows * num_chunks)
-        gicp.linearize(self.src_pts, self.src_cov, self.row_group, self.row_map, self.row_q,
-                       self.row_t, self.row_start, self.row_count, self._rows, chunk,
-                       num_chunks, self.q_cand, self.t_cand, self.status, maps.vox, maps.res,
-                       maps.buckets, maps.max_probes, *sums, exclusive, self.plane_covs)
-        if not exclusive:
-            gicp.reduce_tasks(self._rows, num_chunks, self.row_group, self.status, *sums,
-                              self.acc_H, self.acc_b, self.acc_e, self.acc_n,
-                              self._one_row_per_group)
-        return gicp.step(self._groups, int(use_lm), rotation_eps_rad, translation_eps_m,
-                         self.q_cur, self.t_cur, self.q_cand, self.t_cand, self.lam,
-                         self.status, self.iters, self.acc_H, self.acc_b, self.acc_e,
-                         self.acc_n, self.best_H, self.best_b, self.best_e, self.best_n,
-                         self._groups < SERIAL_GROUPS)
+        return gicp.iterate(self.src_pts, self.src_cov, self.row_group, self.row_map,
+                            self.row_q, self.row_t, self.row_start, self.row_count, self._rows,
+                            chunk, num_chunks, maps.vox, maps.res, maps.buckets,
+                            maps.max_probes, *sums, exclusive, self.plane_covs,
+                            self._one_row_per_group, self._groups, int(use_lm),
+                            rotation_eps_rad, translation_eps_m, self.q_cur, self.t_cur,
+                            self.q_cand, self.t_cand, self.lam, self.status, self.iters,
+                            self.acc_H, self.acc_b, self.acc_e, self.acc_n, self.best_H,
+                            self.best_b, self.best_e, self.best_n,
+                            self._groups < SERIAL_GROUPS)
 
     def _task_sums(self, tasks: int) -> tuple:
         """Per-task sums for a split linearization (fields grown on demand, never shrunk)."""

@@ -76,9 +76,6 @@ class GaussianVoxelMaps:
         self.coord = ti.Vector.field(3, ti.i32, max_points)
         self.probe = ti.field(ti.i32, max_points)
         self.slot = ti.field(ti.i32, max_points)
-        self.query_ids = ti.field(ti.i32, max_maps)
-        self.query_q = ti.Vector.field(4, ti.f32, max_maps)
-        self.query_t = ti.Vector.field(3, ti.f32, max_maps)
         self.counter = ti.field(ti.i32, ())
         self._voxel_size = [0.0] * max_maps  # 0: not usable until clear() gives a size
         self._num_voxels = [0] * max_maps
@@ -117,9 +114,9 @@ class GaussianVoxelMaps:
                T_map_points: np.ndarray | None = None) -> int:
         """Add points (N, 3) with covariances (N, 3, 3), given in a frame placed in the map by
         `T_map_points`, to map `map_id`; returns the map's voxel count afterwards."""
-        from mcl3d.kernels import upload, voxel_hash
+        from mcl3d.kernels import upload
 
-        begin, end = self._region(map_id)
+        self._region(map_id)
         if self._voxel_size[map_id] <= 0:
             raise MapError(f"map {map_id} has no voxel size: call clear(map_id, voxel_size_m)")
         pts = check_points(points)
@@ -127,24 +124,54 @@ class GaussianVoxelMaps:
         if covs.shape != (len(pts), 3, 3):
             raise PointCloudError(f"covs must have shape ({len(pts)}, 3, 3), got {covs.shape}")
         T = check_pose(np.eye(4) if T_map_points is None else T_map_points, "T_map_points")
-        res = self._voxel_size[map_id]
         for start in range(0, len(pts), self.max_points):
             chunk = slice(start, start + self.max_points)
             n = len(pts[chunk])
             upload.vector_rows(np.ascontiguousarray(pts[chunk], np.float32), n, self.pts)
             upload.matrix_rows(np.ascontiguousarray(covs[chunk], np.float32), n, self.covs)
-            voxel_hash.begin_insert(self.pts, self.covs, n, T.astype(np.float32), res,
-                                    self.coord, self.probe, self.slot)
-            self._settle(map_id, n)
-            lost = voxel_hash.accumulate(self.pts, self.covs, self.slot, n, res, self.vox,
-                                         self.count, self.vsum, self.vsumcov)
-            if lost:
-                raise MapError(
-                    f"voxel map {map_id} is full ({lost} points found no free slot within "
-                    f"{self.max_probes} probes); raise buckets_per_map (now {self.buckets}) "
-                    "or the voxel size")
+            self._add_staged(map_id, n, T)
+        return self._finalize(map_id)
+
+    def insert_rows(self, map_id: int, pts, rows, n: int, plane: bool,
+                    T_map_points: np.ndarray | None = None) -> int:
+        """`insert` for points already on the device: the first `n` of the vec3 field `pts`
+        with covariance rows `rows` (upper triangles xx xy xz yy yz zz, or (n, α, β, 0) for
+        αI + βnnᵀ when `plane`), e.g. a BatchGicp's source pool: no host round trip."""
+        from mcl3d.kernels import voxel_hash
+
+        self._region(map_id)
+        if self._voxel_size[map_id] <= 0:
+            raise MapError(f"map {map_id} has no voxel size: call clear(map_id, voxel_size_m)")
+        if not 0 <= n <= self.max_points:
+            raise ConfigError(f"insert_rows takes at most {self.max_points} points, got {n}")
+        T = check_pose(np.eye(4) if T_map_points is None else T_map_points, "T_map_points")
+        if n:
+            voxel_hash.stage_rows(pts, rows, n, bool(plane), self.pts, self.covs)
+            self._add_staged(map_id, n, T)
+        return self._finalize(map_id)
+
+    def _add_staged(self, map_id: int, n: int, T: np.ndarray) -> None:
+        """Add the `n` staged points (their frame placed in the map by T) to map `map_id`."""
+        from mcl3d.kernels import voxel_hash
+
+        res = self._voxel_size[map_id]
+        voxel_hash.begin_insert(self.pts, self.covs, n, T.astype(np.float32), res,
+                                self.coord, self.probe, self.slot)
+        self._settle(map_id, n)
+        lost = voxel_hash.accumulate(self.pts, self.covs, self.slot, n, res, self.vox,
+                                     self.count, self.vsum, self.vsumcov)
+        if lost:
+            raise MapError(
+                f"voxel map {map_id} is full ({lost} points found no free slot within "
+                f"{self.max_probes} probes); raise buckets_per_map (now {self.buckets}) "
+                "or the voxel size")
+
+    def _finalize(self, map_id: int) -> int:
+        from mcl3d.kernels import voxel_hash
+
+        begin, end = self._region(map_id)
         self._num_voxels[map_id] = voxel_hash.finalize(
-            self.vox, self.count, self.vsum, self.vsumcov, res, begin, end)
+            self.vox, self.count, self.vsum, self.vsumcov, self._voxel_size[map_id], begin, end)
         return self._num_voxels[map_id]
 
     def _settle(self, map_id: int, n: int) -> None:
@@ -180,19 +207,37 @@ class GaussianVoxelMaps:
             raise ConfigError("overlap needs one pose per map id and 1..max_maps maps")
         if len(pts) == 0:
             return 0.0
+        queries = self._queries(map_ids, T_map_points)
+        hits = 0
+        for start in range(0, len(pts), self.max_points):
+            chunk = np.ascontiguousarray(pts[start:start + self.max_points], np.float32)
+            upload.vector_rows(chunk, len(chunk), self.pts)
+            hits += voxel_hash.count_hits(self.pts, len(chunk), queries, len(map_ids), self.res,
+                                          self.buckets, self.max_probes, self.vox)
+        return hits / len(pts)
+
+    def overlap_of(self, pts, n: int, map_ids: list[int],
+                   T_map_points: list[np.ndarray]) -> float:
+        """`overlap` of the first `n` points of a device vec3 field (a BatchGicp's source
+        pool): no upload."""
+        from mcl3d.kernels import voxel_hash
+
+        if len(map_ids) != len(T_map_points) or not 1 <= len(map_ids) <= self.max_maps:
+            raise ConfigError("overlap needs one pose per map id and 1..max_maps maps")
+        if n <= 0:
+            return 0.0
+        hits = voxel_hash.count_hits(pts, n, self._queries(map_ids, T_map_points),
+                                     len(map_ids), self.res, self.buckets, self.max_probes,
+                                     self.vox)
+        return hits / n
+
+    def _queries(self, map_ids: list[int], T_map_points: list[np.ndarray]) -> np.ndarray:
+        """Rows (map id, qx, qy, qz, qw, tx, ty, tz) for count_hits, checked."""
+        rows = np.empty((len(map_ids), 8), np.float32)
         for k, (m, T) in enumerate(zip(map_ids, T_map_points, strict=True)):
             self._region(m)
             if self._voxel_size[m] <= 0:
                 raise MapError(f"map {m} was never cleared/filled: it has no voxel size")
             T = check_pose(T, "T_map_points")
-            self.query_ids[k] = m
-            self.query_q[k] = rot_to_quat(T[:3, :3]).astype(np.float32)
-            self.query_t[k] = T[:3, 3].astype(np.float32)
-        hits = 0
-        for start in range(0, len(pts), self.max_points):
-            chunk = np.ascontiguousarray(pts[start:start + self.max_points], np.float32)
-            upload.vector_rows(chunk, len(chunk), self.pts)
-            hits += voxel_hash.count_hits(self.pts, len(chunk), self.query_ids, self.query_q,
-                                          self.query_t, len(map_ids), self.res, self.buckets,
-                                          self.max_probes, self.vox)
-        return hits / len(pts)
+            rows[k] = (m, *rot_to_quat(T[:3, :3]), *T[:3, 3])
+        return rows

@@ -23,7 +23,7 @@ from pydantic import Field, model_validator
 from mcl3d.config import Section
 from mcl3d.geometry import se3_exp, se3_inverse, se3_log
 from mcl3d.imu_preintegration import Preintegrated, gravity_from_static, preintegrate
-from mcl3d.preprocess import deskew, estimate_covariances, voxel_downsample
+from mcl3d.preprocess import ScanGrid, deskew, estimate_covariances, voxel_downsample
 
 LOST_COVARIANCE = 1e6  # variance (rad², m²) of a motion that could not be measured
 
@@ -129,6 +129,7 @@ class Odometry:
         self.gicp = BatchGicp(self.maps, max_groups=1,
                               max_rows=cfg.max_keyframes * cfg.map_levels,
                               max_source_points=cfg.max_points)
+        self.grid = ScanGrid(max_voxels=cfg.max_points)
         self.reset(T_lidar_imu)
 
     def reset(self, T_lidar_imu: np.ndarray | None = None) -> None:
@@ -191,26 +192,22 @@ class Odometry:
         first = not self.frames
         self._initial_gravity(imu)
         points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        r = np.linalg.norm(points, axis=1)
-        keep = np.isfinite(r) & (r >= cfg.min_range_m) & (r <= cfg.max_range_m)
-        points = points[keep]
         times = None
         if cfg.deskew and times_s is not None and len(points):
-            times = np.asarray(times_s, dtype=np.float64).ravel()[keep]
-        t_ref = float(np.median(times)) if times is not None else 0.0
+            times = np.asarray(times_s, dtype=np.float64).ravel()
+        t_ref = 0.0
+        if times is not None:
+            r2 = np.einsum("ij,ij->i", points, points)  # NaN and inf fail both tests
+            kept = times[(r2 >= cfg.min_range_m**2) & (r2 <= cfg.max_range_m**2)]
+            t_ref = float(np.median(kept)) if len(kept) else 0.0
         t_mid = stamp_ns * 1e-9 + t_ref
         if first:
             T_pred, xi, pre = np.eye(4), np.zeros(6), None
         else:
             T_pred, xi, pre = self._predict(t_mid, imu)
-        if times is not None and not first:
-            points = deskew(points, times - t_ref, xi)
-        down = voxel_downsample(points, cfg.voxel_size_m) if len(points) else points
-        if len(down) > cfg.max_points:
-            pick = np.linspace(0, len(down) - 1, cfg.max_points).astype(np.int64)
-            down = down[pick]
-        covs = estimate_covariances(down, cfg.k_neighbors)
-        frame, T_mid = self._register(stamp_ns, T_pred, down, covs, first)
+        deskew_times = None if times is None or first else times - t_ref
+        num_points = self._preprocess(points, deskew_times, xi)
+        frame, T_mid = self._register(stamp_ns, T_pred, num_points, first)
         frame.T_world_lidar = T_mid @ se3_exp(-t_ref * xi)
         T_prev = self.frames[-1].T_world_lidar if self.frames else frame.T_world_lidar
         frame.T_prev_curr = se3_inverse(T_prev) @ frame.T_world_lidar
@@ -221,26 +218,53 @@ class Odometry:
         self.frames.append(frame)
         return frame
 
-    def _register(self, stamp_ns: int, T_pred: np.ndarray, down: np.ndarray,
-                  covs: np.ndarray, first: bool) -> tuple[OdometryFrame, np.ndarray]:
-        """The frame (pose and relative motion filled in by `step`) and the mid-sweep pose."""
+    def _preprocess(self, points: np.ndarray, times: np.ndarray | None, xi: np.ndarray) -> int:
+        """Range crop, deskew (when `times` are given), downsample and covariances into the
+        GICP's source pool; returns the point count. On the device (ScanGrid) unless the scan
+        has more voxels than `max_points`: then on the host, thinned evenly."""
+        from mcl3d.kernels.scan_grid import MAX_K
+
+        cfg = self.cfg
+        if cfg.k_neighbors <= MAX_K:
+            n = self.grid.downsample(points, cfg.voxel_size_m, self.gicp.src_pts, times,
+                                     None if times is None else xi, cfg.min_range_m,
+                                     cfg.max_range_m)
+            if n is not None:
+                self.grid.covariances(self.gicp.src_pts, self.gicp.src_cov, cfg.k_neighbors)
+                self.gicp.use_device_source(n, plane_covs=True)
+                return n
+        r = np.linalg.norm(points, axis=1)
+        keep = np.isfinite(r) & (r >= cfg.min_range_m) & (r <= cfg.max_range_m)
+        points = points[keep]
+        if times is not None and len(points):
+            points = deskew(points, times[keep], xi)
+        down = voxel_downsample(points, cfg.voxel_size_m) if len(points) else points
+        if len(down) > cfg.max_points:
+            pick = np.linspace(0, len(down) - 1, cfg.max_points).astype(np.int64)
+            down = down[pick]
+        self.gicp.set_source(down, estimate_covariances(down, cfg.k_neighbors))
+        return len(down)
+
+    def _register(self, stamp_ns: int, T_pred: np.ndarray, num_points: int,
+                  first: bool) -> tuple[OdometryFrame, np.ndarray]:
+        """The frame (pose and relative motion filled in by `step`) and the mid-sweep pose;
+        the scan is in the GICP's source pool."""
         cfg = self.cfg
         lost = np.eye(6) * LOST_COVARIANCE
         eye = np.eye(4)
         if first or not self.keyframes:
             frame = OdometryFrame(stamp_ns, eye, eye, np.zeros((6, 6)) if first else lost,
-                                  len(down), 0, 0, first, False, 0.0, False)
-            if len(down) >= cfg.min_inliers:
-                self._insert_keyframe(T_pred, down, covs)
+                                  num_points, 0, 0, first, False, 0.0, False)
+            if num_points >= cfg.min_inliers:
+                self._insert_keyframe(T_pred)
                 frame.keyframe = True
             else:
-                frame.warnings.append(f"scan has only {len(down)} usable points: no keyframe")
+                frame.warnings.append(f"scan has only {num_points} usable points: no keyframe")
             return frame, T_pred
-        if len(down) < cfg.min_inliers:
-            return OdometryFrame(stamp_ns, eye, eye, lost, len(down), 0, 0, False, False, 0.0,
-                                 True, [f"scan has only {len(down)} usable points: pose "
+        if num_points < cfg.min_inliers:
+            return OdometryFrame(stamp_ns, eye, eye, lost, num_points, 0, 0, False, False, 0.0,
+                                 True, [f"scan has only {num_points} usable points: pose "
                                         "predicted, not measured"]), T_pred
-        self.gicp.set_source(down, covs)
         rows, lefts = [], []
         for slot, T_world_kf in self._nearest_keyframes(T_pred):
             for level in range(cfg.map_levels):
@@ -258,14 +282,15 @@ class Odometry:
             warnings += degeneracy(H, cfg.degeneracy_ratio, cfg.rotation_degeneracy_ratio)
             degenerate = bool(warnings)
             cov = np.linalg.pinv(H) if degenerate else np.linalg.inv(H)
-        coarse = [slot * cfg.map_levels + cfg.map_levels - 1 for slot, _ in self.keyframes]
-        overlap = self.maps.overlap(down, coarse, [se3_inverse(T_kf) @ T
-                                                   for _, T_kf in self.keyframes])
-        frame = OdometryFrame(stamp_ns, eye, eye, cov, len(down), inliers,
+        newest_first = self.keyframes[::-1]  # the likeliest hit first: fewer lookups
+        coarse = [slot * cfg.map_levels + cfg.map_levels - 1 for slot, _ in newest_first]
+        overlap = self.maps.overlap_of(self.gicp.src_pts, num_points, coarse,
+                                       [se3_inverse(T_kf) @ T for _, T_kf in newest_first])
+        frame = OdometryFrame(stamp_ns, eye, eye, cov, num_points, inliers,
                               int(out.iterations[0]), bool(out.converged[0]), False, overlap,
                               degenerate, warnings)
         if overlap < cfg.keyframe_overlap and inliers >= cfg.min_inliers:
-            self._insert_keyframe(T, down, covs)
+            self._insert_keyframe(T)
             frame.keyframe = True
         return frame, T
 
@@ -275,19 +300,20 @@ class Odometry:
         keep = np.argsort(d, kind="stable")[:self.cfg.registration_keyframes]
         return [self.keyframes[i] for i in sorted(keep)]
 
-    def _insert_keyframe(self, T_world_lidar: np.ndarray, down: np.ndarray,
-                         covs: np.ndarray) -> None:
+    def _insert_keyframe(self, T_world_lidar: np.ndarray) -> None:
+        """The scan in the GICP's source pool becomes a keyframe (maps built on the device)."""
         cfg = self.cfg
+        g = self.gicp
         if len(self.keyframes) == cfg.max_keyframes:
             self.keyframes.pop(0)
         slot = self.next_slot
         self.next_slot = (self.next_slot + 1) % cfg.max_keyframes
         if self.map_voxel_size_m is None:
-            self.map_voxel_size_m = cfg.map_voxel_size_m or adaptive_voxel_size(down)
+            self.map_voxel_size_m = cfg.map_voxel_size_m or adaptive_voxel_size(g.source()[0])
         for level in range(cfg.map_levels):
             map_id = slot * cfg.map_levels + level
             self.maps.clear(map_id, self.map_voxel_size_m * 2**level)
-            self.maps.insert(map_id, down, covs)
+            self.maps.insert_rows(map_id, g.src_pts, g.src_cov, g.num_source, g.plane_covs)
         self.keyframes.append((slot, T_world_lidar.copy()))
 
     def _update_velocity(self, t_mid_s: float, T_mid: np.ndarray, pre: Preintegrated | None,

@@ -1,7 +1,9 @@
 """Scan preprocessing for GICP: deskewing, voxel-grid downsampling, per-point covariances.
 
-Neighbour search runs on the host (scipy's cKDTree): it is done once per scan, not per pose,
-so it is not the hot loop; everything per pose runs in the Taichi kernels.
+The functions work on any cloud on the host (numpy, scipy's cKDTree for exact k nearest
+neighbours) with Taichi kernels for the per-point math. `ScanGrid` does the whole chain for
+one scan on the device in two launches (a voxel-hash neighbour search instead of a kd-tree)
+and leaves the result where registration reads it: what odometry runs per scan.
 """
 
 from __future__ import annotations
@@ -11,10 +13,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from mcl3d.errors import ConfigError, PointCloudError
-from mcl3d.gaussian_voxels import check_points
+from mcl3d.gaussian_voxels import check_points, ensure_runtime
 
 PLANE_EIGENVALUES = (1e-3, 1.0, 1.0)  # normal first, as small_gicp/gtsam_points (kernel: n, 1, 1)
 MIN_NEIGHBORS = 5  # fewer neighbours than this: identity covariance
+DESKEW_KNOTS = 64  # ScanGrid evaluates the sweep's motion exactly here, interpolates between
 
 
 @dataclass
@@ -83,7 +86,6 @@ def estimate_covariances(points: np.ndarray, k_neighbors: int = 10,
     counts = found.sum(axis=1).astype(np.int32)
     # found neighbours come first in each row (sorted by distance); the rest are never read
     neighbors = np.where(found, idx, 0).astype(np.int32)
-    from mcl3d.gaussian_voxels import ensure_runtime
     from mcl3d.kernels.covariance import plane_covariances
 
     ensure_runtime()
@@ -112,7 +114,6 @@ def deskew(points: np.ndarray, point_times_s: np.ndarray, twist: np.ndarray) -> 
         raise PointCloudError("point times and the twist must be finite (twist has 6 values)")
     if len(pts) == 0:
         return pts
-    from mcl3d.gaussian_voxels import ensure_runtime
     from mcl3d.kernels.deskew import deskew_points
 
     ensure_runtime()
@@ -133,3 +134,128 @@ def preprocess(points: np.ndarray, voxel_size_m: float = 0.25, k_neighbors: int 
     pts = pts[(r >= min_range_m) & (r <= max_range_m)]
     down = voxel_downsample(pts, voxel_size_m)
     return Scan(down, estimate_covariances(down, k_neighbors))
+
+
+class ScanGrid:
+    """Deskewing, range crop, voxel-grid downsampling and plane covariances of one scan at a
+    time on the device (kernels/scan_grid.py), into fields sized once. The points and their
+    covariance rows land in fields the caller names (a BatchGicp's source pool), so a scan
+    reaches registration without a host round trip.
+
+    Differences from the host functions: voxel points come in order of first occurrence
+    instead of sorted by voxel, deskewing interpolates the motion between 64 knots, and the
+    k neighbours are the nearest within 2 voxels of each point (exact where the k-th nearest
+    lies that close, the usual case on surfaces); a point with fewer than 5 there takes the
+    k nearest within the 3x3x3 bricks of 4^3 voxels around it, the identity with fewer than 5
+    there too. On the office VLP-16 bench log this local neighbourhood gave lower drift than
+    a search that always widens toward exact k nearest (ATE 0.8 vs 1.9 cm).
+    """
+
+    def __init__(self, max_points: int = 1 << 17, max_voxels: int = 1 << 16):
+        if max_points < 1 or max_voxels < 1:
+            raise ConfigError("ScanGrid needs max_points and max_voxels >= 1")
+        ensure_runtime()
+        import taichi as ti
+
+        self.max_points, self.max_voxels = max_points, max_voxels
+        slots = 1 << (2 * max_voxels - 1).bit_length()  # at most half full: probing ends
+        self.stage_p = ti.Vector.field(3, ti.f32, max_points)
+        self.stage_key = ti.Vector.field(3, ti.i32, max_points)
+        self.stage_ok = ti.field(ti.i32, max_points)
+        self.slot_key = ti.Vector.field(3, ti.i32, slots)
+        self.slot_brick = ti.field(ti.i32, slots)
+        self.brick_slot = ti.field(ti.i32, max_voxels)
+        self.cells = ti.field(ti.i32, max_voxels * 64)
+        self.voxel_key = ti.Vector.field(3, ti.i32, max_voxels)
+        self.voxel_brick = ti.field(ti.i32, max_voxels)
+        self.brick_start = ti.field(ti.i32, max_voxels)
+        self.brick_count = ti.field(ti.i32, max_voxels)
+        self.brick_points = ti.field(ti.i32, max_voxels)
+        self.voxel_sum = ti.Vector.field(3, ti.f32, max_voxels)
+        self.voxel_count = ti.field(ti.i32, max_voxels)
+        self.counts = ti.Vector.field(3, ti.i32, ())  # voxels, bricks, overflow (device only)
+        self.knot_R = ti.Matrix.field(3, 3, ti.f32, DESKEW_KNOTS)
+        self.knot_t = ti.Vector.field(3, ti.f32, DESKEW_KNOTS)
+        self.slot_brick.fill(-1)
+        self.num_voxels = 0
+        self.voxel_size_m = 0.0
+
+    def downsample(self, points: np.ndarray, voxel_size_m: float, out_pts,
+                   times_s: np.ndarray | None = None, twist: np.ndarray | None = None,
+                   min_range_m: float = 0.0, max_range_m: float = np.inf) -> int | None:
+        """Voxel means of the points within [min_range_m, max_range_m] (NaN/inf dropped),
+        deskewed by `twist` over `times_s` when both are given (as `deskew`), into `out_pts`
+        (a vec3 field); returns their count, or None when they do not fit (more voxels than
+        `max_voxels` or the field), so the caller takes the host path."""
+        from mcl3d.kernels import scan_grid
+
+        pts = np.asarray(points, dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] < 3:
+            raise PointCloudError(f"points must be an (N, 3) array; got shape {pts.shape}")
+        if not np.isfinite(voxel_size_m) or voxel_size_m <= 0:
+            raise ConfigError(f"voxel_size_m must be > 0, got {voxel_size_m}")
+        use_deskew = times_s is not None and twist is not None
+        if use_deskew:
+            times = np.ascontiguousarray(times_s, np.float32).ravel()
+            if times.shape != (len(pts),):
+                raise PointCloudError(f"need one time per point: {len(times)} times for "
+                                      f"{len(pts)} points")
+            tw = np.asarray(twist, np.float32).ravel()
+            t_first = float(times.min()) if len(times) else 0.0
+            t_step = max((float(times.max()) - t_first) / (DESKEW_KNOTS - 1), 1e-9) \
+                if len(times) else 1.0
+        else:
+            times, tw = np.zeros(1, np.float32), np.zeros(6, np.float32)
+            t_first, t_step = 0.0, 1.0
+        self.voxel_size_m = float(voxel_size_m)
+        max_range = min(float(max_range_m), 3e38)
+        count, starts = -1, range(0, max(len(pts), 1), self.max_points)
+        for start in starts:
+            chunk = np.ascontiguousarray(pts[start:start + self.max_points, :3], np.float32)
+            n = len(chunk)
+            count = scan_grid.downsample(
+                chunk.reshape(-1, 3) if n else np.zeros((1, 3), np.float32),
+                times[start:start + n] if use_deskew else times, n, int(start == 0),
+                int(start == starts[-1]), int(use_deskew), tw[:3], tw[3:], t_first, t_step,
+                min_range_m, max_range, voxel_size_m, self.knot_R, self.knot_t, self.stage_p,
+                self.stage_key, self.stage_ok, self.slot_key, self.slot_brick, self.brick_slot,
+                self.cells, self.voxel_key, self.voxel_brick, self.voxel_sum, self.voxel_count,
+                self.counts, out_pts)
+        if count < 0 or count > min(self.max_voxels, out_pts.shape[0]):
+            self.num_voxels = 0
+            return None
+        self.num_voxels = count
+        return count
+
+    def covariances(self, pts, out_rows, k_neighbors: int = 10) -> None:
+        """Plane covariance rows (n, 1, 1e-3 - 1, 0) of the points `downsample` wrote into
+        `pts`, into `out_rows` (a 6-vector field): batch_gicp.plane_form's layout."""
+        from mcl3d.kernels import scan_grid
+
+        if not MIN_NEIGHBORS <= k_neighbors <= scan_grid.MAX_K:
+            raise ConfigError(f"k_neighbors must be in {MIN_NEIGHBORS}..{scan_grid.MAX_K} on "
+                              f"the device, got {k_neighbors}")
+        scan_grid.plane_covariances(self.num_voxels, self.counts, k_neighbors, MIN_NEIGHBORS,
+                                    PLANE_EIGENVALUES[0], self.voxel_brick, self.voxel_key,
+                                    pts, self.slot_key, self.slot_brick, self.cells,
+                                    self.brick_start, self.brick_count, self.brick_points,
+                                    out_rows)
+
+
+def plane_rows_to_covs(rows: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) covariances αI + βnnᵀ from plane rows (n, α, β, ...)."""
+    n = rows[:, :3]
+    return rows[:, 3, None, None] * np.eye(3) + rows[:, 4, None, None] * n[:, :, None] * \
+        n[:, None, :]
+
+
+def download_rows(pts, rows, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(points (n, 3), rows (n, 6)) as float64 from a point field and a covariance-row field."""
+    from mcl3d.kernels import scan_grid
+
+    out = np.empty((max(n, 1), 9), np.float32)
+    if n:
+        scan_grid.download_rows(n, pts, rows, out)
+    out = out[:n].astype(np.float64)
+    return out[:, :3], out[:, 3:]
+

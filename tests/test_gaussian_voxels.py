@@ -84,6 +84,40 @@ def test_overlap_is_the_fraction_in_any_map(maps):
     assert maps.overlap(b[:10] - [50.0, 0, 0], [2], [moved]) == pytest.approx(1.0)
 
 
+def test_device_rows_insert_and_overlap_equal_the_host_ones(maps):
+    """insert_rows / overlap_of read points already on the device (a GICP source pool):
+    plane rows (n, α, β) and upper triangles give the same voxels as insert()."""
+    import taichi as ti
+
+    from mcl3d.preprocess import plane_rows_to_covs
+
+    rng = np.random.default_rng(4)
+    pts = rng.uniform(-2, 2, (500, 3))
+    n = rng.normal(size=(500, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    plane = np.c_[n, np.ones(500), np.full(500, -0.999), np.zeros(500)]
+    covs = plane_rows_to_covs(plane)
+    field_pts = ti.Vector.field(3, ti.f32, 500)
+    field_rows = ti.Vector.field(6, ti.f32, 500)
+    field_pts.from_numpy(pts.astype(np.float32))
+    T = se3(random_rotations(rng, 1)[0], [0.3, -0.2, 1.0])
+    iu, ju = np.triu_indices(3)
+    for rows, is_plane in ((plane, True), (covs[:, iu, ju], False)):
+        field_rows.from_numpy(np.c_[rows, np.zeros((500, 6 - rows.shape[1]))].astype(np.float32))
+        maps.clear(0, 0.6)
+        maps.insert(0, pts, covs, T)
+        maps.clear(1, 0.6)
+        maps.insert_rows(1, field_pts, field_rows, 500, is_plane, T)
+        for host, device in zip(sorted_voxels(maps, 0), sorted_voxels(maps, 1), strict=True):
+            np.testing.assert_allclose(device, host, atol=1e-5)
+    assert maps.overlap_of(field_pts, 500, [1, 0], [T, T]) == 1.0
+    shifted = [T @ se3(np.eye(3), [1.5, 0.0, 0.0])]  # part of the cloud leaves the map
+    fraction = maps.overlap_of(field_pts, 500, [1], shifted)
+    assert 0.2 < fraction < 0.9 and fraction == maps.overlap(pts, [1], shifted)
+    with pytest.raises(ConfigError, match="at most"):
+        maps.insert_rows(1, field_pts, field_rows, 701, True)
+
+
 def test_full_map_raises_a_clear_error(ti_runtime):
     from mcl3d.gaussian_voxels import GaussianVoxelMaps
 

@@ -4,6 +4,7 @@ end to end on a short simulated office log (with IMU and ground truth)."""
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -51,8 +52,9 @@ def test_room_motion_is_tracked_and_a_corridor_is_flagged(odometry):
     corridor.step(tube, None, 0)
     frame = corridor.step(tube[::-1].copy(), None, 100_000_000)
     assert frame.degenerate
-    assert any("degenerate translation" in w and "[1.00, 0.00, 0.00]" in w
-               for w in frame.warnings)
+    directions = [np.array(re.search(r"along \[(.*)\]", w).group(1).split(", "), float)
+                  for w in frame.warnings if "degenerate translation" in w]
+    assert directions and abs(directions[0][0]) > 0.99  # along the corridor (±0.00 elsewhere)
 
 
 def test_reset_starts_a_new_log_on_the_same_fields(odometry):
