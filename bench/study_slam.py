@@ -10,7 +10,8 @@ Two experiments after the paper's §IV, on simulated logs (several seeds each):
 Each run goes through `mcl3d.slam_pipeline.run`, the code behind `mcl3d slam`. ATEs are
 SE(3)-aligned RMSE (`evo_ape -a`). Logs are cached under bench/results/study_slam/.
 
-    python bench/study_slam.py [--particles 2000] [--seeds 1 2 3] [--backend cpu]
+    python bench/study_slam.py [--particles 2000] [--seeds 1 2 3] [--cases forest] \
+        [--backend cpu] [--out bench/results/study_slam.json]
 """
 
 from __future__ import annotations
@@ -68,6 +69,7 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
     ap.add_argument("--cases", nargs="+", default=list(CASES))
     ap.add_argument("--backend", default="cpu")
+    ap.add_argument("--out", type=Path, default=RESULTS / "study_slam.json")
     args = ap.parse_args()
     info = runtime.init(args.backend)
     rows = []
@@ -91,7 +93,7 @@ def main() -> None:
                 row["floor_error_m"] = floor_error_m(out, log)
             rows.append(row)
             print(json.dumps(row), flush=True)
-            (RESULTS / "study_slam.json").write_text(json.dumps(
+            args.out.write_text(json.dumps(
                 {"backend": info.backend, "device": info.device,
                  "particles": args.particles, "rows": rows}, indent=2))
     print("\n| case | seed | path (m) | ATE odometry (m) | ATE SLAM (m) | ATE online (m) | "

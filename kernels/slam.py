@@ -207,10 +207,17 @@ def propagate(n: ti.i32, num_kf: ti.i32, kf: ti.types.ndarray(ndim=3), nb: ti.te
 
 
 @ti.kernel
-def mark_fixed(n: ti.i32, travel_now_m: ti.f32, corrected: ti.template(),
-               fixed_travel: ti.template()):
+def mark_fixed(n: ti.i32, travel_now_m: ti.f32, corrected: ti.template(), shift: ti.template(),
+               settled_rad: ti.f32, settled_m: ti.f32, fixed_travel: ti.template()):
+    """A correction this small means the particle sits on the loop (it is re-driving it):
+    later corrections spread from here. A larger one (the first steps of a closure, a
+    step cut by the trust region) leaves the start where it was, so the rest of the
+    closure still bends the whole loop."""
     for i in range(n):
-        if corrected[i] == 1:
+        s = shift[i]
+        small = (vec3(s[0], s[1], s[2]).norm() <= settled_rad
+                 and vec3(s[3], s[4], s[5]).norm() <= settled_m)
+        if corrected[i] == 1 and small:
             fixed_travel[i] = travel_now_m
 
 

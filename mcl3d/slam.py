@@ -60,9 +60,15 @@ class SlamConfig(Section):
                                      "back along the path is a loop")
     gn_iterations: int = Field(1, ge=0, description="Gauss-Newton steps per loop frame (0: "
                                "no gradient guidance)")
-    min_inliers: int = Field(30, ge=6, description="loop correspondences needed for a step")
+    min_inliers: int = Field(100, ge=6, description="loop correspondences needed for a step "
+                             "(of correction_points): a loop keyframe that sees little of the "
+                             "scan (the next row of trees, seen from behind) pulls the wrong way")
     max_correction_m: float = Field(1.0, gt=0, description="trust region of one step (m)")
     max_correction_deg: float = Field(5.0, gt=0, description="trust region of one step (deg)")
+    settled_correction_m: float = Field(0.02, ge=0, description="a step this small means the "
+                                        "particle is on the loop: later steps spread from here "
+                                        "instead of from the oldest neighbour (m)")
+    settled_correction_deg: float = Field(0.2, ge=0, description="the same for rotation (deg)")
     odometry_noise_scale: float = Field(0.5, ge=0, description="× the odometry covariance "
                                         "(its inverse Hessian overstates per-scan error)")
     noise_trans_per_m: float = Field(0.01, ge=0, description="translation σ per metre moved")
@@ -313,7 +319,9 @@ class MonteCarloSlam:
             looping = p.select_neighbours(*gate)
             for _ in range(cfg.gn_iterations if looping else 0):
                 corrected = p.correct(self.travel_m, len(src_pts), cfg.min_inliers,
-                                      np.deg2rad(cfg.max_correction_deg), cfg.max_correction_m)
+                                      np.deg2rad(cfg.max_correction_deg), cfg.max_correction_m,
+                                      np.deg2rad(cfg.settled_correction_deg),
+                                      cfg.settled_correction_m)
                 p.select_neighbours(*gate)
         watch.lap("correct")
         if can_score:

@@ -132,7 +132,7 @@ class SlamParticles:
         g.iterate(use_lm=False, chunk=num_src)  # whole rows: no atomics, reproducible
 
     def correct(self, travel_m: float, num_src: int, min_inliers: int, max_rot_rad: float,
-                max_trans_m: float) -> int:
+                max_trans_m: float, settled_rad: float, settled_m: float) -> int:
         """One gradient-guided update of the looping particles and their keyframes (eq. 5-10);
         returns how many particles moved."""
         from mcl3d.kernels import slam
@@ -144,7 +144,8 @@ class SlamParticles:
                      self.corrected)
         slam.propagate(self.n, self.num_keyframes, self.kf, self.nb, self.kf_travel, travel_m,
                        self.shift, self.corrected, self.fixed_travel)
-        slam.mark_fixed(self.n, travel_m, self.corrected, self.fixed_travel)
+        slam.mark_fixed(self.n, travel_m, self.corrected, self.shift, settled_rad, settled_m,
+                        self.fixed_travel)
         return int(self.corrected.to_numpy().sum())
 
     def weigh(self, num_src: int, outlier_cost: float, points_weight: float) -> None:

@@ -185,8 +185,11 @@ def test_propagate_spreads_the_correction_by_travelled_distance(ti_runtime):
                 want = geometry.se3(dR @ kf[i, k, :3, :3], kf[i, k, :3, 3] + alpha * shifts[i, 3:])
             np.testing.assert_allclose(got[i, k], want, atol=2e-5)
     np.testing.assert_allclose(got[2], kf[2], atol=2e-5)  # not corrected: untouched
-    slam.mark_fixed(n, 20.0, corrected, fixed)
-    np.testing.assert_array_equal(fixed.to_numpy(), [20.0, 20.0, 0.0])
+    # particle 0 moved 0.3 m: still closing, its start stays; particle 1 settled: it moves
+    shift.from_numpy(np.array([[0, 0, 0, 0.3, 0, 0], [0.001, 0, 0, 0.01, 0, 0], [0] * 6],
+                              np.float32))
+    slam.mark_fixed(n, 20.0, corrected, shift, np.deg2rad(0.2), 0.02, fixed)
+    np.testing.assert_array_equal(fixed.to_numpy(), [0.0, 20.0, 0.0])
 
 
 def test_likelihood_matches_numpy(ti_runtime):

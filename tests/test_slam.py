@@ -64,7 +64,7 @@ def test_loop_closure_pulls_the_current_pose_and_bends_the_keyframes(ti_runtime)
     nb = p.nb.to_numpy()[0]
     assert 0 in nb
     for _ in range(4):
-        p.correct(24.0, len(src), 30, np.deg2rad(5.0), 1.0)
+        p.correct(24.0, len(src), 30, np.deg2rad(5.0), 1.0, np.deg2rad(0.2), 0.02)
         p.select_neighbours(24.0, 10.0)
     cur = p.current_poses()[0]
     before = np.linalg.norm(est_cur[:3, 3] - true_cur[:3, 3])
