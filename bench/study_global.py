@@ -20,6 +20,12 @@ failure, and so is one still searching at the end. "Scans to converge" is the fi
 from which the error stays within tolerance until the end of the run (the filter's own
 `converged` state comes later: it waits for motion, see docs/sensor-model.md).
 
+Kidnap recovery (--kidnap SEEDS): the office `kidnap` trajectory (the robot is carried 24 m
+at half the log; odometry does not see it) tracked from the first ground-truth pose, on the
+whole office's map at 10 cm, as in tests/test_localize_sim.py but over several seeds. A
+recovery succeeds when the filter says `converged` within 0.2 m and 3 deg of the truth after
+the jump and stays within tolerance to the end of the log.
+
 Writes JSON after every run (--json), so a partial study still reports what finished, and
 prints a table (success rate and median scans to converge per world x particle count).
 Runs are ordered by particle count, smallest first, so the expensive counts come last.
@@ -27,6 +33,7 @@ Runs are ordered by particle count, smallest first, so the expensive counts come
     python bench/study_global.py --quick            # 2 seeds x office/arena, N = 10k, 30k
     python bench/study_global.py                    # seeds 1-10, N = 10k ... 300k
     python bench/study_global.py --report a.json b.json   # the table of finished runs
+    python bench/study_global.py --kidnap 0 1 2 3 4 --json bench/results/study_kidnap.json
 """
 
 from __future__ import annotations
@@ -61,6 +68,54 @@ def make_data(work: Path, world: str, seed: int, duration_s: float) -> tuple[Pat
     if not tsdf.exists():
         mcl3d("build-map", mesh, "-o", tsdf, "--backend", "cpu", "--force")
     return log, tsdf, work / f"{world}_{seed}_gt.tum"
+
+
+KIDNAP_STD = [0.05, 0.05, 0.02, 0.01, 0.01, 0.02]  # the test's initial spread
+
+
+def make_kidnap_data(work: Path, seed: int, duration_s: float) -> tuple[Path, Path, Path]:
+    log = work / f"kidnap_{seed}.mcap"
+    mesh = work / f"kidnap_{seed}.ply"
+    tsdf = work / f"kidnap_{seed}.tsdf"
+    if not log.exists():
+        mcl3d("simulate", "office", "-o", log, "--trajectory", "kidnap", "--duration",
+              duration_s, "--seed", seed, "--export-mesh", mesh, "--force")
+    if not tsdf.exists():
+        mcl3d("build-map", mesh, "-o", tsdf, "--voxel-size", 0.1, "--backend", "cpu",
+              "--force")
+    return log, tsdf, work / f"kidnap_{seed}_gt.tum"
+
+
+def kidnap_once(work: Path, seed: int, args, cache: MapCache) -> dict:
+    """One kidnap run: detection, re-seeding and the scan of the recovery."""
+    from mcl3d.localize import LocalizeConfig, run
+    from mcl3d.trajectory import read_tum
+
+    log, tsdf, gt_tum = make_kidnap_data(work, seed, args.kidnap_duration)
+    cache.current = tsdf
+    out = work / f"kidnap_{seed}_{args.kidnap_particles}"
+    cfg = LocalizeConfig.model_validate({"localizer": {
+        "particles": args.kidnap_particles, "seed": seed,
+        "init": {"mode": "gt", "std": KIDNAP_STD}}})
+    t0 = time.perf_counter()
+    res = run(log, tsdf, out, cfg, force=True, backend="cpu")
+    wall = time.perf_counter() - t0
+    d, a = scan_errors(out, gt_tum)
+    gt = read_tum(gt_tum)
+    jump = int(np.argmax(np.linalg.norm(np.diff(gt.poses[:, :3, 3], axis=0), axis=1) > 5.0)) + 1
+    states = [r.state for r in res.results]
+    good = (d < TOL_M) & (a < TOL_DEG)
+    back = [k for k in range(jump, len(d)) if states[k] == "converged" and good[k]]
+    recovered = bool(back) and bool(good[back[0]:].all())
+    lost = [k for k in range(jump, len(d)) if states[k] == "lost"]
+    reseeds = [(k, r.reseeded) for k, r in enumerate(res.results) if r.reseeded]
+    return {"seed": seed, "particles": args.kidnap_particles, "scans": len(d),
+            "jump_scan": jump, "tracked_before": bool(good[:jump].all()),
+            "lost_detected_after": lost[0] - jump if lost else None,
+            "reseeds": reseeds, "recovered": recovered,
+            "scans_to_recover": back[0] - jump if recovered else None,
+            "final_error_m": float(d[-1]), "final_state": states[-1],
+            "wall_s": round(wall, 1)}
 
 
 def scan_errors(out: Path, gt_tum: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -222,6 +277,13 @@ def print_table(rows: list[dict]) -> None:
     Console().print(table)
 
 
+def write_json(path: Path, data: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(data, indent=2))
+    tmp.replace(path)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--worlds", nargs="+", default=list(WORLDS), choices=list(WORLDS))
@@ -238,6 +300,10 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="seeds 1 2, N = 10k and 30k")
     ap.add_argument("--report", type=Path, nargs="+",
                     help="only print the table of these JSON files' runs (merged)")
+    ap.add_argument("--kidnap", type=int, nargs="+", metavar="SEED",
+                    help="run the office kidnap recovery for these seeds instead")
+    ap.add_argument("--kidnap-duration", type=float, default=8.0)
+    ap.add_argument("--kidnap-particles", type=int, default=50_000)
     ap.add_argument("--work", type=Path, default=Path("bench/results/study_global"))
     ap.add_argument("--json", type=Path, default=Path("bench/results/study_global.json"))
     args = ap.parse_args()
@@ -262,6 +328,14 @@ def main() -> None:
     settings = {k: str(v) for k, v in vars(args).items()}
     settings.update(machine=f"{platform.platform()}, {info.device}")
     runs: list[dict] = []
+    if args.kidnap:
+        for seed in args.kidnap:
+            runs.append(kidnap_once(args.work, seed, args, cache))
+            print(json.dumps(runs[-1]), flush=True)
+            write_json(args.json, {"settings": settings, "runs": runs})
+        ok = sum(r["recovered"] for r in runs)
+        print(f"kidnap recovered in {ok}/{len(runs)}; wrote {args.json}")
+        return
     for n in sorted(args.particles):
         for world in args.worlds:
             for seed in args.seeds:
@@ -277,11 +351,7 @@ def main() -> None:
                 runs.append(run)
                 print(json.dumps(run), flush=True)
                 rows = summarize(runs, args.worlds, sorted(args.particles))
-                args.json.parent.mkdir(parents=True, exist_ok=True)
-                tmp = args.json.with_suffix(".tmp")
-                tmp.write_text(json.dumps({"settings": settings, "summary": rows,
-                                           "runs": runs}, indent=2))
-                tmp.replace(args.json)
+                write_json(args.json, {"settings": settings, "summary": rows, "runs": runs})
     print_table(summarize(runs, args.worlds, sorted(args.particles)))
     print(f"wrote {args.json}")
 

@@ -102,6 +102,56 @@ def cluster_hypotheses(positions: np.ndarray, quats_xyzw: np.ndarray, weights: n
     return hypotheses
 
 
+def label_particles(positions: np.ndarray, quats_xyzw: np.ndarray, centres: list[np.ndarray],
+                    radius_m: float, angle_rad: float) -> np.ndarray:
+    """Index of the first cluster centre (a 4x4 pose) within `radius_m` and `angle_rad` of
+    each particle, -1 for none: cluster membership for every particle, not just a sample."""
+    labels = np.full(len(positions), -1, dtype=np.int64)
+    for c, T in enumerate(centres):
+        q_c = geometry.rot_to_quat(T[:3, :3])
+        free = labels < 0
+        near = free & (np.linalg.norm(positions - T[:3, 3], axis=1) <= radius_m)
+        near[near] = _angle_to(quats_xyzw[near], q_c) <= angle_rad
+        labels[near] = c
+    return labels
+
+
+@dataclass(frozen=True)
+class ModeFloor:
+    factors: np.ndarray  # (N,) resampling weight = weight * factor for each particle
+    rivals: int  # protected clusters besides the heaviest one
+
+
+def mode_floor(labels: np.ndarray, weights: np.ndarray, share: float, min_weight: float,
+               max_modes: int) -> ModeFloor:
+    """Resampling factors that keep at least `share` of the particles in every cluster whose
+    posterior weight is at least `min_weight` (the `max_modes` heaviest such clusters).
+
+    Resampling by weight alone lets a mode that is as good as the winner, but momentarily a
+    little lighter, die out by chance within a few updates (the 180-degree mirror pose in a
+    near-symmetric hall); once it has no particles no evidence can bring it back. Resampling
+    with weight * factor keeps its particles; each copy then carries the log-weight
+    -log(factor) of its parent, so the posterior (cluster weights, estimate) is unchanged.
+    `rivals` > 0 says another mode still holds non-negligible weight.
+    """
+    w = np.asarray(weights, dtype=np.float64)
+    w = w / w.sum()
+    k = int(labels.max()) + 1 if len(labels) else 0
+    cluster_w = np.bincount(labels[labels >= 0], weights=w[labels >= 0], minlength=k)
+    order = [c for c in np.argsort(-cluster_w, kind="stable") if cluster_w[c] >= min_weight]
+    kept = order[:max_modes]
+    factors = np.ones(len(w))
+    if len(kept) < 2:
+        return ModeFloor(factors, 0)
+    floored = [c for c in kept if cluster_w[c] < share]
+    if floored:  # they get `share` each; everything else shares the rest by weight
+        others_w = 1.0 - cluster_w[floored].sum()
+        factors[:] = (1.0 - share * len(floored)) / others_w
+        for c in floored:
+            factors[labels == c] = share / cluster_w[c]
+    return ModeFloor(factors, len(kept) - 1)
+
+
 def kld_sample_count(occupied_bins: int, epsilon: float, delta: float, n_min: int,
                      n_max: int) -> int:
     """Fox's KLD-sampling bound: particles needed so the KL error stays below `epsilon`

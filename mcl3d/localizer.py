@@ -2,8 +2,10 @@
 
 One step = motion update (kernel) -> scan likelihood (kernel) -> weights and ESS (kernels)
 -> estimate from the dominant cluster (host, on a weighted subsample) -> recovery check ->
-systematic resampling (kernels) when the ESS is low, optionally with a KLD-sampling count,
-and re-seeding of a fraction of the particles when the filter has lost track.
+systematic resampling (kernels) when the ESS is low, optionally with a KLD-sampling count
+(during a global search mode-preserving: every plausible cluster keeps a share of the
+particles, see docs/sensor-model.md), and re-seeding of a fraction of the particles when the
+filter has lost track.
 """
 
 from __future__ import annotations
@@ -17,12 +19,20 @@ from pydantic import Field
 from mcl3d import geometry
 from mcl3d.config import Section
 from mcl3d.errors import ConfigError, InputError
-from mcl3d.estimate import ClusterParams, Hypothesis, cluster_hypotheses, kld_sample_count
+from mcl3d.estimate import (
+    ClusterParams,
+    Hypothesis,
+    cluster_hypotheses,
+    kld_sample_count,
+    label_particles,
+    mode_floor,
+)
 from mcl3d.particle_init import FreeCells, InitConfig, free_cells
 from mcl3d.particles import ParticleSet
 from mcl3d.sensor_model import BLOCK, SensorModelConfig, code_table, reduce_scan, spatial_order
 
 STATES = ("initializing", "converged", "ambiguous", "lost")
+COARSE_MIN_WEIGHT = 1e-12  # the coarse phase's mode floor protects any cluster it finds
 STAGES = ("motion", "likelihood", "weights", "estimate", "resample", "recovery")
 
 
@@ -47,6 +57,13 @@ class ResampleConfig(Section):
     anneal_min_ess: float = Field(
         0.05, ge=0.0, lt=1.0, description="until the first convergence, temper each scan "
                                           "further so that ESS >= this * N (0: off)")
+    mode_share: float = Field(
+        0.1, ge=0.0, lt=0.5, description="global search: every cluster with at least "
+                                         "mode_min_weight of the weight keeps at least this "
+                                         "share of the particles at resampling (0: off)")
+    mode_min_weight: float = Field(
+        0.01, gt=0.0, lt=1.0, description="... and a global search is not converged while "
+                                          "a second cluster holds this much weight")
     kld: bool = Field(False, description="adapt the particle count with KLD-sampling")
     min_particles: int = Field(2000, ge=1)
     kld_epsilon: float = Field(0.05, gt=0.0, description="KL error bound")
@@ -100,7 +117,9 @@ class RecoveryConfig(Section):
                                    description="share re-seeded over the whole free space")
     expansion_std_m: float = Field(1.0, gt=0.0, description="expansion resetting, per attempt")
     expansion_std_rad: float = Field(0.3, gt=0.0)
-    expansion_attempts: int = Field(3, ge=0, description="then re-seed globally")
+    expansion_attempts: int = Field(1, ge=0, description="then re-seed globally (one: a "
+                                                          "slip is found at once, a kidnap "
+                                                          "needs the global search early)")
     attempt_scans: int = Field(5, ge=1, description="scans to wait for an attempt to work")
 
 
@@ -184,6 +203,10 @@ class Localizer:
         self._dominant_run = 0
         self._init_step = 0
         self._coarse = None  # the coarse search field, built at the first global init
+        self._mode_factors: np.ndarray | None = None  # mode-preserving resampling factors
+        self.rivals = 0  # protected clusters besides the dominant one (global search)
+        self._coarse_scan = False  # the last update used the coarse search model
+        self._upright: tuple[float, float] | None = None  # roll, pitch when last converged
         self._rng = np.random.default_rng(config.seed)
         import taichi as ti
 
@@ -223,18 +246,30 @@ class Localizer:
         return self._free
 
     def init_global(self, fraction: float = 1.0) -> None:
-        """Uniform over the map's free space; roll/pitch from gravity when known."""
+        """Uniform over the map's free space; roll/pitch from gravity when known (the IMU's,
+        else, for a re-seed, the last converged estimate's: a kidnapped robot is still
+        upright, and uniform rotations on SO(3) would waste most particles on tilted poses)."""
         from mcl3d.kernels import particles as kp
 
         cells = self.free_space()
         if fraction >= 1.0:
             self._start_search()
         p = self.particles
-        gravity = self.imu_roll_pitch is not None
-        roll, pitch = self.imu_roll_pitch if gravity else (0.0, 0.0)
+        roll_pitch = self.imu_roll_pitch or self._upright
+        gravity = roll_pitch is not None
+        roll, pitch = roll_pitch if gravity else (0.0, 0.0)
         kp.init_cells(p.pos, p.quat, p.log_w, p.n, cells.corners_m, len(cells.corners_m),
                       cells.cell_m, int(gravity), roll, pitch, self.cfg.init.gravity_std_rad,
                       fraction, self.seed, self._counter(1))
+
+    def init_particles(self, positions: np.ndarray, quats_xyzw: np.ndarray,
+                       search: bool = False) -> None:
+        """A given particle set (tests, restarts). search=True: it is the state of a global
+        search (convergence only after motion, modes kept), without a coarse phase."""
+        self.particles.set_host(positions, quats_xyzw)
+        if search:
+            self._start_search()
+            self._search_scans = self.cfg.sensor.coarse_scans
 
     def _start_search(self) -> None:
         """A fresh global search: coarse model first, convergence only after motion."""
@@ -320,6 +355,7 @@ class Localizer:
         self.step_index += 1
         step = self._counter(0)
         coarse_sigma = self.search_sigma()
+        self._coarse_scan = coarse_sigma is not None
         if T_prev_curr is not None:
             extra_r, extra_t = extra_std
             if not self.ever_converged:  # the exploration grows with the coarse sigma
@@ -379,15 +415,20 @@ class Localizer:
                              result_parts["state"])
         reseed = self._recovery_action(lost)
         state = "lost" if lost else result_parts["state"]
+        if state == "converged":
+            roll, pitch, _ = geometry.rot_to_rpy(result_parts["T_map_lidar"][:3, :3])
+            self._upright = (float(roll), float(pitch))
         t0 = timer.lap("recovery", t0)
 
         resampled = bool(reseed) or ess < cfg.resample.ess_threshold * n
         if resampled:
             n_out = self._kld_count(pos, quat, w) if cfg.resample.kld else n
+            factors = None if reseed else self._mode_factors
+            total = s1 if factors is None else self._upload_floored_weights(w, factors)
             resample.scan_blocks(p.w, n, p.cdf, p.block_sums)
             resample.scan_block_sums(p.block_sums, (n + resample.SCAN_BLOCK - 1)
                                      // resample.SCAN_BLOCK)
-            resample.add_block_offsets(p.cdf, n, p.block_sums, s1)
+            resample.add_block_offsets(p.cdf, n, p.block_sums, total)
             u0 = float(np.random.default_rng([self.seed, step, 7]).random())
             resample.systematic_select(p.cdf, n, n_out, u0, p.parent)
             from mcl3d.kernels.particles import gather
@@ -395,6 +436,8 @@ class Localizer:
             gather(p.pos, p.quat, p.parent, n_out, p.pos_back, p.quat_back, p.log_w)
             p.swap()
             p.n = n_out
+            if factors is not None and not self._coarse_scan:
+                self._restore_posterior(factors, n_out)
         t0 = timer.lap("resample", t0)
         if reseed:
             self._reseed(reseed, result_parts["T_map_lidar"])
@@ -456,6 +499,55 @@ class Localizer:
                                    self._coarse_table, coarse_match_codes(s),
                                    s.tempering(n_points), p.log_w, p.match, p.ll_mean)
 
+    def _upload_floored_weights(self, w: np.ndarray, factors: np.ndarray) -> float:
+        """Resampling weights w * factor (mode-preserving) into p.w; returns their sum."""
+        p = self.particles
+        host = np.zeros(p.capacity, np.float32)
+        host[:len(w)] = w * factors
+        p.w.from_numpy(host)
+        return float(host.sum(dtype=np.float64))
+
+    def _restore_posterior(self, factors: np.ndarray, n_out: int) -> None:
+        """Each copy carries log(weight / resampling weight) of its parent: the floored
+        modes keep their particles but not more than their share of the posterior."""
+        p = self.particles
+        parent = p.parent.to_numpy()[:n_out]
+        log_w = np.zeros(p.capacity, np.float32)
+        log_w[:n_out] = -np.log(factors[parent])
+        p.log_w.from_numpy(log_w)
+
+    def _modes(self, pos, quat, w, hyps: list[Hypothesis]) -> None:
+        """Mode-preserving resampling factors during a global search (`mode_floor`): the
+        clusters are those of the weighted sample plus those of a uniform sample of the
+        particles (a mode that holds many particles but little weight), merged when closer
+        than two cluster radii. During the coarse phase the model is a deliberately blurred
+        search heuristic, not evidence to accumulate: the heaviest clusters keep their floor
+        whatever their weight, and the copies start with equal weights (tempering), so the
+        accurate model decides between the modes from the end of the coarse phase on."""
+        e, r = self.cfg.estimate, self.cfg.resample
+        self._mode_factors, self.rivals = None, 0
+        if not self._searching or r.mode_share <= 0:
+            return
+        k = min(len(w), e.samples)
+        idx = np.random.default_rng([self.seed, self.step_index, 4]).choice(len(w), k,
+                                                                             replace=False)
+        params = ClusterParams(e.cluster_radius_m, e.cluster_angle_rad, e.max_hypotheses)
+        populous = cluster_hypotheses(pos[idx], quat[idx], np.full(k, 1.0 / k), params)
+        centres: list[np.ndarray] = []
+        for h in hyps + populous:
+            T = h.T_map_lidar
+            if all(np.linalg.norm(T[:3, 3] - C[:3, 3]) > 2 * e.cluster_radius_m
+                   or geometry.rotation_angle(C[:3, :3].T @ T[:3, :3])
+                   > 2 * e.cluster_angle_rad for C in centres):
+                centres.append(T)
+        labels = label_particles(pos, quat, centres, e.cluster_radius_m, e.cluster_angle_rad)
+        floor = mode_floor(labels, w, r.mode_share,
+                           COARSE_MIN_WEIGHT if self._coarse_scan else r.mode_min_weight,
+                           e.max_hypotheses)
+        self.rivals = floor.rivals
+        if floor.rivals:
+            self._mode_factors = floor.factors
+
     def _anneal(self, n: int, scale: float) -> float:
         """Largest beta <= 1 with ESS(log_w_prev + beta * increment) >= anneal_min_ess * N;
         the increment already added is scaled down to beta times itself."""
@@ -505,9 +597,10 @@ class Localizer:
                    and h0.rotation_std_rad <= e.converged_std_rad)
         strong = [h for h in hyps if h.weight >= e.hypothesis_min_weight]
         dominant = h0.weight >= e.converged_weight and compact
+        self._modes(pos, quat, w, hyps)
         if self._searching:  # global search: dominant for a while, after the coarse phase
             self._dominant_run = self._dominant_run + 1 if (
-                dominant and self.search_sigma() is None) else 0
+                dominant and self.search_sigma() is None and not self.rivals) else 0
             moved = (self._moved[0] >= e.converge_min_motion_m
                      or self._moved[1] >= e.converge_min_rotation_rad)
             dominant = self._dominant_run >= e.converged_scans and moved

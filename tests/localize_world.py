@@ -35,10 +35,39 @@ def room_mesh():
     return b.build()
 
 
-def build_map(voxel_size_m: float = 0.05):
+HALL = (16.0, 6.0, 3.0)  # m, inside dimensions
+HALL_CRATE = ((13.5, 1.0), (14.5, 2.0))  # the one feature without a 180-degree twin
+
+
+def hall_mesh():
+    """A hall that is 180-degree symmetric about its centre (x, y) = (8, 3) except for one
+    crate near its +x end: from the middle, the true pose and its mirror image look alike
+    until the crate comes into range."""
+    from mcl3d.sim.mesh import MeshBuilder
+
+    b = MeshBuilder()
+    x, y, z = HALL
+    t = 0.2
+    b.box((-t, -t, -t), (x + t, y + t, 0.0), 0.5)
+    b.box((-t, -t, z), (x + t, y + t, z + t), 0.5)
+    b.box((-t, -t, 0.0), (0.0, y + t, z), 0.5)
+    b.box((x, -t, 0.0), (x + t, y + t, z), 0.5)
+    b.box((0.0, -t, 0.0), (x, 0.0, z), 0.5)
+    b.box((0.0, y, 0.0), (x, y + t, z), 0.5)
+    for (x0, y0), (x1, y1), h in (((4.0, 1.5), (4.4, 1.9), 1.5),  # pillars, shelves
+                                  ((6.5, 4.2), (7.3, 6.0), 2.0),
+                                  ((2.0, 0.0), (3.0, 0.5), 1.0)):
+        b.box((x0, y0, 0.0), (x1, y1, h), 0.5)
+        b.box((x - x1, y - y1, 0.0), (x - x0, y - y0, h), 0.5)  # the 180-degree twin
+    (cx0, cy0), (cx1, cy1) = HALL_CRATE
+    b.box((cx0, cy0, 0.0), (cx1, cy1, 1.2), 0.5)
+    return b.build()
+
+
+def build_map(voxel_size_m: float = 0.05, mesh=None):
     from mcl3d.maps.build import BuildConfig, build_from_mesh
 
-    mesh = room_mesh()
+    mesh = room_mesh() if mesh is None else mesh
     return build_from_mesh(mesh.vertices, mesh.triangles,
                            BuildConfig(voxel_size_m=voxel_size_m, free_margin_m=3.0))
 
@@ -46,18 +75,18 @@ def build_map(voxel_size_m: float = 0.05):
 class Scanner:
     """A 16-ring spinning lidar (+-15 deg, `n_azimuth` columns) cast against the room."""
 
-    def __init__(self, n_azimuth: int = 360, noise_m: float = 0.01, seed: int = 0):
+    def __init__(self, n_azimuth: int = 360, noise_m: float = 0.01, seed: int = 0, mesh=None):
         import open3d as o3d
 
-        mesh = room_mesh()
+        mesh = room_mesh() if mesh is None else mesh
         self.scene = o3d.t.geometry.RaycastingScene()
         self.scene.add_triangles(o3d.core.Tensor(mesh.vertices.astype(np.float32)),
                                  o3d.core.Tensor(mesh.triangles.astype(np.uint32)))
         az = np.linspace(0, 2 * np.pi, n_azimuth, endpoint=False)
         el = np.radians(np.linspace(-15, 15, 16))
         A, E = np.meshgrid(az, el, indexing="ij")
-        self.dirs = np.column_stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A),
-                                     np.sin(E)]).reshape(-1, 3)
+        self.dirs = np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)],
+                             axis=-1).reshape(-1, 3)
         self.noise_m = noise_m
         self.rng = np.random.default_rng(seed)
 

@@ -9,6 +9,8 @@ from mcl3d.estimate import (
     average_quaternions,
     cluster_hypotheses,
     kld_sample_count,
+    label_particles,
+    mode_floor,
 )
 
 
@@ -64,3 +66,41 @@ def test_kld_bound_uses_the_real_quantile():
     assert n == pytest.approx(exact, rel=0.01)
     assert kld_sample_count(1, 0.05, 0.01, 500, 10**6) == 500
     assert kld_sample_count(10**6, 0.05, 0.01, 500, 300_000) == 300_000
+
+
+def test_label_particles_by_position_and_angle():
+    centres = [geometry.se3(np.eye(3), [0.0, 0.0, 0.0]),
+               geometry.se3(geometry.rpy_to_rot(0.0, 0.0, np.pi), [10.0, 0.0, 0.0])]
+    positions = np.array([[0.5, 0, 0], [0.5, 0, 0], [10.2, 0, 0], [10.2, 0, 0], [5.0, 0, 0]])
+    yaws = np.array([0.1, 1.0, np.pi - 0.2, 0.0, 0.0])
+    quats = geometry.rot_to_quat(geometry.so3_exp(np.column_stack([0 * yaws, 0 * yaws, yaws])))
+    labels = label_particles(positions, quats, centres, radius_m=1.0, angle_rad=0.5)
+    assert labels.tolist() == [0, -1, 1, -1, -1]
+
+
+def test_mode_floor_keeps_a_light_mode_and_preserves_the_posterior():
+    # particles 0-5 in mode 0 (weight 0.97), 6-7 in mode 1 (0.02), 8-9 unlabeled (0.01)
+    labels = np.array([0] * 6 + [1] * 2 + [-1] * 2)
+    w = np.array([0.97 / 6] * 6 + [0.01, 0.01] + [0.005, 0.005])
+    floor = mode_floor(labels, w, share=0.2, min_weight=1e-3, max_modes=3)
+    assert floor.rivals == 1
+    resampling = w * floor.factors
+    assert resampling[labels == 1].sum() == pytest.approx(0.2)  # the floor
+    assert resampling.sum() == pytest.approx(1.0)
+    # the rest share the remaining 0.8 in proportion to their weight
+    assert resampling[labels == -1].sum() == pytest.approx(0.01 * 0.8 / 0.98)
+    assert resampling[labels == 0].sum() == pytest.approx(0.97 * 0.8 / 0.98)
+    # copies carry log(w / resampling weight): the posterior per mode is unchanged
+    counts = np.round(resampling * 1000)
+    posterior = counts * w / resampling
+    assert posterior[labels == 1].sum() / posterior.sum() == pytest.approx(0.02, rel=0.05)
+
+
+def test_mode_floor_ignores_negligible_modes_and_single_modes():
+    labels = np.array([0, 0, 0, 1])
+    one = mode_floor(labels, np.array([0.3, 0.3, 0.3999, 1e-4]), 0.2, 1e-3, 3)
+    assert one.rivals == 0 and np.all(one.factors == 1.0)
+    heavy = mode_floor(labels, np.array([0.3, 0.3, 0.1, 0.3]), 0.2, 1e-3, 3)
+    assert heavy.rivals == 1 and np.allclose(heavy.factors, 1.0)  # both above the floor
+    capped = mode_floor(np.array([0, 1, 2, -1]), np.array([0.8, 0.15, 0.05, 0.0]), 0.2, 1e-3, 2)
+    assert capped.rivals == 1 and capped.factors[2] == pytest.approx(0.8 / 0.85)  # 2 kept
