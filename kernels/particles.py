@@ -8,7 +8,7 @@ translation), `quat` (vec4, x y z w), `log_w`. Every random draw is a counter-ba
 
 import taichi as ti
 
-from mcl3d.kernels.random import normal2, uniform
+from mcl3d.kernels.random import counter_hash, normal2, uniform
 from mcl3d.kernels.se3 import quat_exp, quat_mul, quat_normalize
 
 vec3 = ti.math.vec3
@@ -23,6 +23,14 @@ S_SELECT, S_N0, S_N1, S_N2, S_U0, S_U1, S_U2, S_U3, S_U4, S_U5 = (
 @ti.func
 def _chosen(seed: ti.u32, step: ti.u32, i: ti.i32, fraction: ti.f32) -> bool:
     return fraction >= 1.0 or uniform(seed, step, ti.u32(i), ti.u32(S_SELECT)) < fraction
+
+
+@ti.func
+def _golden(i: ti.i32, offset: ti.u32) -> ti.f32:
+    """frac(i / phi + offset / 2^32) in [0, 1): a low-discrepancy sequence (integer
+    arithmetic: in f32, i / phi keeps no fraction bits for large i)."""
+    bits = (ti.u32(i) * ti.u32(2654435769) + offset) >> ti.u32(8)
+    return ti.cast(bits, ti.f32) * (1.0 / 16777216.0)
 
 
 @ti.func
@@ -60,22 +68,30 @@ def init_cells(pos: ti.template(), quat: ti.template(), log_w: ti.template(), n:
 
     gravity = 1: roll/pitch from the IMU's gravity (+ N(0, std_rp)), yaw uniform;
     gravity = 0: rotations uniform on SO(3) (Shoemake's method from three uniforms).
+    Stratified, not independent: particle i takes a random cell of the i-th of n equal runs
+    of the cell list, and its yaw is the i-th point of a golden-ratio sequence, so every part
+    of the free space gets its share of particles and neighbouring ones look in different
+    directions (independent draws leave random holes, and a hole on the true pose is a
+    failed global localization).
     """
+    per_particle = ti.cast(n_cells, ti.f32) / ti.cast(n, ti.f32)
+    yaw_offset = counter_hash(seed, step, ti.u32(0), ti.u32(S_U4))
     for i in range(n):
         if _chosen(seed, step, i, fraction):
-            k = ti.min(ti.cast(uniform(seed, step, ti.u32(i), ti.u32(S_U0)) * n_cells, ti.i32),
-                       n_cells - 1)
+            u0 = uniform(seed, step, ti.u32(i), ti.u32(S_U0))
+            k = ti.min(ti.cast((ti.cast(i, ti.f32) + u0) * per_particle, ti.i32), n_cells - 1)
             off = vec3(uniform(seed, step, ti.u32(i), ti.u32(S_U1)),
                        uniform(seed, step, ti.u32(i), ti.u32(S_U2)),
                        uniform(seed, step, ti.u32(i), ti.u32(S_U3)))
             pos[i] = cells[k] + off * cell_m
-            u1 = uniform(seed, step, ti.u32(i), ti.u32(S_U4))
-            u2 = uniform(seed, step, ti.u32(i), ti.u32(S_U5))
             q = vec4(0.0, 0.0, 0.0, 1.0)
             if gravity:
                 g = normal2(seed, step, ti.u32(i), ti.u32(S_N0))
-                q = _rpy_quat(roll + std_rp * g[0], pitch + std_rp * g[1], _TWO_PI * u1)
+                q = _rpy_quat(roll + std_rp * g[0], pitch + std_rp * g[1],
+                              _TWO_PI * _golden(i, yaw_offset))
             else:
+                u1 = uniform(seed, step, ti.u32(i), ti.u32(S_U4))
+                u2 = uniform(seed, step, ti.u32(i), ti.u32(S_U5))
                 u3 = uniform(seed, step, ti.u32(i), ti.u32(S_N1))
                 r1 = ti.sqrt(1.0 - u1)
                 r2 = ti.sqrt(u1)

@@ -54,8 +54,9 @@ class BuildConfig(Section):
                                   "voxel")
     carve_free_space: bool = Field(True, description="mark space between sensor and band free")
     free_margin_m: float = Field(
-        2.0, ge=0.0, description="point-cloud and mesh maps: mark free blocks up to this far "
-                                 "from the surface (on the normals' side)")
+        2.0, ge=0.0, description="point-cloud maps: mark free blocks up to this far from the "
+                                 "points (on the normals' side; mesh maps mark all of the "
+                                 "free side)")
     mesh_sign: str = Field("normals", pattern="^(normals|parity)$",
                            description="inside/outside of a mesh: from triangle normals (they "
                                        "face free space) or ray parity (closed solids)")
@@ -478,9 +479,11 @@ def build_from_mesh(vertices: np.ndarray, triangles: np.ndarray, config: BuildCo
     """Exact signed distance to a triangle mesh in the blocks near its surface.
 
     Blocks whose centre is farther than truncation + half a block diagonal from the mesh
-    hold no band voxel: they become FREE on the free side (within free_margin_m of the
-    surface, or everywhere inside the mesh bounds for parity) and stay unknown inside
-    solids. Blocks near the surface get the exact distance at every voxel centre.
+    hold no band voxel: they become FREE on the free side, however far from the surface (a
+    mesh's sign holds far from it, and a drone in a large hall flies more than a few metres
+    from every wall: global localization only places particles in free space), and stay
+    unknown inside solids. Blocks near the surface get the exact distance at every voxel
+    centre.
     """
     vertices = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
     triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
@@ -502,7 +505,7 @@ def build_from_mesh(vertices: np.ndarray, triangles: np.ndarray, config: BuildCo
     sd = mesh.signed_distance(centers, config.mesh_sign)
     half_diag = 0.5 * np.sqrt(3) * geometry.block_size_m
     near = np.abs(sd) < trunc + half_diag + 1e-6
-    free = (sd >= trunc + half_diag) & (sd <= config.free_margin_m + half_diag)
+    free = sd >= trunc + half_diag
     near_cells = cells[near]
     tsdf = new_map(geometry, config, len(near_cells))
     tsdf.as_sums = False

@@ -64,6 +64,11 @@ class ResampleConfig(Section):
     mode_min_weight: float = Field(
         0.01, gt=0.0, lt=1.0, description="... and a global search is not converged while "
                                           "a second cluster holds this much weight")
+    mode_grace_scans: int = Field(
+        12, ge=0, description="global search: after the coarse phase, this many scans of the "
+                             "accurate model keep every cluster found, with equal weights "
+                             "after each resampling, so that a mode the coarse model left "
+                             "misaligned aligns before it is judged")
     kld: bool = Field(False, description="adapt the particle count with KLD-sampling")
     min_particles: int = Field(2000, ge=1)
     kld_epsilon: float = Field(0.05, gt=0.0, description="KL error bound")
@@ -205,7 +210,7 @@ class Localizer:
         self._coarse = None  # the coarse search field, built at the first global init
         self._mode_factors: np.ndarray | None = None  # mode-preserving resampling factors
         self.rivals = 0  # protected clusters besides the dominant one (global search)
-        self._coarse_scan = False  # the last update used the coarse search model
+        self._exploring = False  # the last update was a coarse or grace scan (see _modes)
         self._upright: tuple[float, float] | None = None  # roll, pitch when last converged
         self._rng = np.random.default_rng(config.seed)
         import taichi as ti
@@ -355,7 +360,8 @@ class Localizer:
         self.step_index += 1
         step = self._counter(0)
         coarse_sigma = self.search_sigma()
-        self._coarse_scan = coarse_sigma is not None
+        self._exploring = self._searching and self._search_scans < (
+            cfg.sensor.coarse_scans + cfg.resample.mode_grace_scans)
         if T_prev_curr is not None:
             extra_r, extra_t = extra_std
             if not self.ever_converged:  # the exploration grows with the coarse sigma
@@ -436,7 +442,7 @@ class Localizer:
             gather(p.pos, p.quat, p.parent, n_out, p.pos_back, p.quat_back, p.log_w)
             p.swap()
             p.n = n_out
-            if factors is not None and not self._coarse_scan:
+            if factors is not None and not self._exploring:
                 self._restore_posterior(factors, n_out)
         t0 = timer.lap("resample", t0)
         if reseed:
@@ -542,7 +548,7 @@ class Localizer:
                 centres.append(T)
         labels = label_particles(pos, quat, centres, e.cluster_radius_m, e.cluster_angle_rad)
         floor = mode_floor(labels, w, r.mode_share,
-                           COARSE_MIN_WEIGHT if self._coarse_scan else r.mode_min_weight,
+                           COARSE_MIN_WEIGHT if self._exploring else r.mode_min_weight,
                            e.max_hypotheses)
         self.rivals = floor.rivals
         if floor.rivals:

@@ -104,6 +104,23 @@ def _keep_covered(grid: np.ndarray, ok: np.ndarray, cfg: InitConfig) -> np.ndarr
     return covered
 
 
+def _in_height_band(occupied: np.ndarray, cell_m: float, truncation_m: float, lo: float,
+                    hi: float) -> np.ndarray:
+    """Cells with a surface somewhere below them at a height in [lo, hi], not only the
+    nearest surface: a drone over a crate is 3.4 m above the floor but 1.9 m above the
+    crate, and the band from the floor its first scan sees must still hold its pose.
+    A cell z above an occupied cell z0 is (z - z0 - 0.5) * cell + truncation high."""
+    nz = occupied.shape[2]
+    counts = np.concatenate([np.zeros((*occupied.shape[:2], 1), np.int32),
+                             np.cumsum(occupied, axis=2, dtype=np.int32)], axis=2)
+    z = np.arange(nz)
+    first = np.clip(np.ceil(z - 0.5 - (hi - truncation_m) / cell_m).astype(np.int64), 0, nz)
+    last = np.clip(np.floor(z - 0.5 - (lo - truncation_m) / cell_m).astype(np.int64), -1,
+                   nz - 1)
+    below = counts[:, :, np.maximum(last + 1, first)] - counts[:, :, first]
+    return below > 0
+
+
 def free_cells(tsdf, cfg: InitConfig) -> FreeCells:
     """Candidate cells for global initialization; MapError when there are none."""
     factor = _cell_factor(tsdf, cfg.cell_m)
@@ -117,14 +134,7 @@ def free_cells(tsdf, cfg: InitConfig) -> FreeCells:
         lo, hi = band
         if hi < lo:
             raise ConfigError(f"height band {band}: hi must be >= lo")
-        last = np.full(grid.shape[:2], -10**9, np.int64)
-        band = np.zeros_like(ok)
-        for z in range(grid.shape[2]):
-            occ = grid[:, :, z] == OCCUPIED_CELL
-            last[occ] = z
-            height = (z - last - 0.5) * cell + tsdf.truncation_m
-            band[:, :, z] = (height >= lo) & (height <= hi)
-        ok &= band
+        ok &= _in_height_band(grid == OCCUPIED_CELL, cell, tsdf.truncation_m, lo, hi)
     ok = _keep_covered(grid, ok, cfg)
     idx = np.argwhere(ok)
     if len(idx) == 0:
@@ -138,7 +148,9 @@ def free_cells(tsdf, cfg: InitConfig) -> FreeCells:
 def floor_height(points_lidar: np.ndarray, roll: float, pitch: float,
                  bin_m: float = 0.05) -> float | None:
     """Height of the lidar above the floor it sees: the densest level of returns below the
-    sensor once the scan is levelled with the gravity's roll/pitch; None without a floor."""
+    sensor once the scan is levelled with the gravity's roll/pitch, if it holds a tenth of
+    them or three times the mean level (a drone 3.4 m up sees as many wall returns below as
+    floor ones); None without a floor."""
     from mcl3d.geometry import rpy_to_rot
 
     p = np.asarray(points_lidar, dtype=np.float64).reshape(-1, 3)
@@ -148,8 +160,8 @@ def floor_height(points_lidar: np.ndarray, roll: float, pitch: float,
         return None
     counts, edges = np.histogram(below, bins=np.arange(below.min(), 0.0 + bin_m, bin_m))
     k = int(np.argmax(counts))
-    if counts[k] < max(20, 0.1 * len(below)):
-        return None
+    if counts[k] < max(20, min(0.1 * len(below), 3.0 * counts.mean())):
+        return None  # no level stands out: walls and clutter only
     return float(-(edges[k] + edges[k + 1]) / 2)
 
 

@@ -69,7 +69,7 @@ def build_map(voxel_size_m: float = 0.05, mesh=None):
 
     mesh = room_mesh() if mesh is None else mesh
     return build_from_mesh(mesh.vertices, mesh.triangles,
-                           BuildConfig(voxel_size_m=voxel_size_m, free_margin_m=3.0))
+                           BuildConfig(voxel_size_m=voxel_size_m))
 
 
 class Scanner:
@@ -158,5 +158,5 @@ def save_room_map(path, voxel_size_m: float = 0.05, offset_m=(0.0, 0.0, 0.0)) ->
 
     mesh = room_mesh()
     tsdf = build_from_mesh(mesh.vertices + np.asarray(offset_m), mesh.triangles,
-                           BuildConfig(voxel_size_m=voxel_size_m, free_margin_m=3.0))
+                           BuildConfig(voxel_size_m=voxel_size_m))
     save_map(path, tsdf, source={"kind": "test room"}, build={})

@@ -42,7 +42,7 @@ def save_corridor_map(path) -> None:
     b.box((0.0, width, 0.0), (length, width + t, height), 0.5)
     mesh = b.build()
     tsdf = build_from_mesh(mesh.vertices, mesh.triangles,
-                           BuildConfig(voxel_size_m=0.1, free_margin_m=3.0))
+                           BuildConfig(voxel_size_m=0.1))
     save_map(path, tsdf, source={"kind": "test corridor"}, build={})
 
 
