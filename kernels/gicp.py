@@ -26,13 +26,15 @@ per pose and whole rows per task stores them straight into its group) and `reduc
 adds them up in a fixed order, so results are the same bits on every run; `step` then
 solves every group's system (Jacobi-scaled, unrolled 6x6 Cholesky) with Gauss-Newton or
 Levenberg-Marquardt acceptance and proposes the next candidate. The three are Taichi
-functions run by the one kernel `iterate`: one launch per iteration.
+functions run by the one kernel `iterate`: one launch per iteration. A small problem (one
+scan of odometry) runs them all on the calling thread on cpu; `download_results` also counts
+the scan's overlap with the keyframe maps in the same launch.
 """
 
 import taichi as ti
 
 from mcl3d.kernels.se3 import pose_compose, pose_retract, quat_to_mat
-from mcl3d.kernels.voxel_hash import EMPTY, lookup_from, probe_slot
+from mcl3d.kernels.voxel_hash import EMPTY, lookup, lookup_from, probe_slot
 
 vec3 = ti.math.vec3
 vec6 = ti.types.vector(6, ti.f32)
@@ -142,13 +144,16 @@ def linearize(src_pts: ti.template(), src_cov: ti.template(), row_group: ti.temp
               status: ti.template(), vox: ti.template(), res: ti.template(), buckets: ti.i32,
               max_probes: ti.i32, acc_H: ti.template(), acc_b: ti.template(),
               acc_e: ti.template(), acc_n: ti.template(), exclusive: ti.template(),
-              plane_cov: ti.template()):
+              plane_cov: ti.template(), serial: ti.template()):
     """`src_cov` holds upper(C_A) (see rotated_cov_basis), or (n, α, β, 0) with `plane_cov`
     (see rotated_source_cov). `exclusive`: every group has one row and one chunk, so each task
     owns its group's sums and stores them in acc_*[group]; otherwise task (r, c) stores its
     sums in acc_*[r * num_chunks + c] (zeros when it has none) and `reduce_tasks` adds them up
     in a fixed order: float atomics would make every run differ in the last bits, and a
-    tracker or particle filter turns those into different trajectories."""
+    tracker or particle filter turns those into different trajectories. `serial`: a small
+    problem (one scan) runs on the calling thread, where waking the pool costs more than it
+    saves (and on a busy machine a descheduled worker stalls the launch)."""
+    ti.loop_config(serialize=serial)
     for r, c in ti.ndrange(num_rows, num_chunks):
         g = row_group[r]
         begin = c * chunk
@@ -397,14 +402,15 @@ def iterate(src_pts: ti.template(), src_cov: ti.template(), row_group: ti.templa
             lam: ti.template(), status: ti.template(), iters: ti.template(),
             acc_H: ti.template(), acc_b: ti.template(), acc_e: ti.template(),
             acc_n: ti.template(), best_H: ti.template(), best_b: ti.template(),
-            best_e: ti.template(), best_n: ti.template(), serial: ti.template()) -> ti.i32:
+            best_e: ti.template(), best_n: ti.template(), serial: ti.template(),
+            serial_linearize: ti.template()) -> ti.i32:
     """One Gauss-Newton/LM iteration of every running group in one launch: `linearize`
     (into task_* sums, which are the acc_* fields when `exclusive`), `reduce_tasks` (unless
     `exclusive`), then `step`; returns how many groups run on. One launch instead of three
     matters for small problems (a scan of odometry), where launching costs more than the math."""
     linearize(src_pts, src_cov, row_group, row_map, row_q, row_t, row_start, row_count,
               num_rows, chunk, num_chunks, q_cand, t_cand, status, vox, res, buckets,
-              max_probes, task_H, task_b, task_e, task_n, exclusive, plane_cov)
+              max_probes, task_H, task_b, task_e, task_n, exclusive, plane_cov, serial_linearize)
     if ti.static(not exclusive):
         reduce_tasks(num_rows, num_chunks, row_group, status, task_H, task_b, task_e, task_n,
                      acc_H, acc_b, acc_e, acc_n, one_row_per_group)
@@ -457,6 +463,35 @@ def upload_source(src: ti.types.ndarray(), n: ti.i32, src_pts: ti.template(),
             src_cov[i][a] = src[i, 3 + a]
 
 
+@ti.func
+def pose_from_row(a: ti.types.ndarray(), i: ti.i32):
+    """(q, t) of the pose in row i of `a` = (R row-major, t): Shepperd's method on the larger
+    of trace and diagonal, w >= 0 (the host then needs no quaternion conversion)."""
+    R = ti.math.mat3(a[i, 0], a[i, 1], a[i, 2], a[i, 3], a[i, 4], a[i, 5], a[i, 6], a[i, 7],
+                     a[i, 8])
+    tr = R[0, 0] + R[1, 1] + R[2, 2]
+    q = ti.math.vec4(0.0)
+    if tr >= R[0, 0] and tr >= R[1, 1] and tr >= R[2, 2]:
+        r = 2.0 * ti.sqrt(ti.max(1.0 + tr, 1e-12))
+        q = ti.math.vec4((R[2, 1] - R[1, 2]) / r, (R[0, 2] - R[2, 0]) / r,
+                         (R[1, 0] - R[0, 1]) / r, 0.25 * r)
+    elif R[0, 0] >= R[1, 1] and R[0, 0] >= R[2, 2]:
+        r = 2.0 * ti.sqrt(ti.max(1.0 + R[0, 0] - R[1, 1] - R[2, 2], 1e-12))
+        q = ti.math.vec4(0.25 * r, (R[0, 1] + R[1, 0]) / r, (R[0, 2] + R[2, 0]) / r,
+                         (R[2, 1] - R[1, 2]) / r)
+    elif R[1, 1] >= R[2, 2]:
+        r = 2.0 * ti.sqrt(ti.max(1.0 + R[1, 1] - R[0, 0] - R[2, 2], 1e-12))
+        q = ti.math.vec4((R[0, 1] + R[1, 0]) / r, 0.25 * r, (R[1, 2] + R[2, 1]) / r,
+                         (R[0, 2] - R[2, 0]) / r)
+    else:
+        r = 2.0 * ti.sqrt(ti.max(1.0 + R[2, 2] - R[0, 0] - R[1, 1], 1e-12))
+        q = ti.math.vec4((R[0, 2] + R[2, 0]) / r, (R[1, 2] + R[2, 1]) / r, 0.25 * r,
+                         (R[1, 0] - R[0, 1]) / r)
+    if q[3] < 0.0:
+        q = -q
+    return q.normalized(), vec3(a[i, 9], a[i, 10], a[i, 11])
+
+
 @ti.kernel
 def upload_problem(rows_i: ti.types.ndarray(), rows_f: ti.types.ndarray(), num_rows: ti.i32,
                    poses: ti.types.ndarray(), num_groups: ti.i32, row_group: ti.template(),
@@ -467,36 +502,42 @@ def upload_problem(rows_i: ti.types.ndarray(), rows_f: ti.types.ndarray(), num_r
                    iters: ti.template(), acc_H: ti.template(), acc_b: ti.template(),
                    acc_e: ti.template(), acc_n: ti.template(), best_n: ti.template(),
                    serial: ti.template()):
-    """Rows (group, map, start, count | q, t of the left pose) and the initial poses (q, t),
-    then `reset_groups`: one launch instead of nine, on the calling thread, which matters per
-    scan (odometry) on a busy machine."""
-    ti.loop_config(serialize=True)
+    """Rows (group, map, start, count | R, t of the left pose) and the initial poses (R, t),
+    then `reset_groups`: one launch instead of nine, which matters per scan (odometry) on a
+    busy machine. Serial for few groups (`serial` as in `step`)."""
+    ti.loop_config(serialize=serial)
     for r in range(num_rows):
         row_group[r] = rows_i[r, 0]
         row_map[r] = rows_i[r, 1]
         row_start[r] = rows_i[r, 2]
         row_count[r] = rows_i[r, 3]
-        row_q[r] = ti.math.vec4(rows_f[r, 0], rows_f[r, 1], rows_f[r, 2], rows_f[r, 3])
-        row_t[r] = vec3(rows_f[r, 4], rows_f[r, 5], rows_f[r, 6])
-    ti.loop_config(serialize=True)
+        row_q[r], row_t[r] = pose_from_row(rows_f, r)
+    ti.loop_config(serialize=serial)
     for g in range(num_groups):
-        q_cand[g] = ti.math.vec4(poses[g, 0], poses[g, 1], poses[g, 2], poses[g, 3])
-        t_cand[g] = vec3(poses[g, 4], poses[g, 5], poses[g, 6])
+        q_cand[g], t_cand[g] = pose_from_row(poses, g)
     reset(num_groups, lm_lambda, q_cur, t_cur, q_cand, t_cand, lam, status, iters, acc_H,
           acc_b, acc_e, acc_n, best_n, serial)
 
 
-RESULT_COLUMNS = 53  # q (4), t (3), H (36), b (6), error, inliers, iterations, status
+RESULT_COLUMNS = 54  # q (4), t (3), H (36), b (6), error, inliers, iterations, status, hits
+MAX_OVERLAP_MAPS = 64  # maps one overlap query may list
 
 
 @ti.kernel
 def download_results(num_groups: ti.i32, q_cur: ti.template(), t_cur: ti.template(),
                      best_H: ti.template(), best_b: ti.template(), best_e: ti.template(),
                      best_n: ti.template(), iters: ti.template(), status: ti.template(),
-                     out: ti.types.ndarray()):
-    """Every group's result as one f32 row (counts stay exact below 2^24): one launch
-    instead of eight field reads, on the calling thread."""
-    ti.loop_config(serialize=True)
+                     src_pts: ti.template(), num_points: ti.i32, queries: ti.types.ndarray(),
+                     num_queries: ti.i32, vox: ti.template(), res: ti.template(),
+                     buckets: ti.i32, max_probes: ti.i32, out: ti.types.ndarray(),
+                     serial: ti.template(), overlap: ti.template()):
+    """Every group's result as one f32 row (counts stay exact below 2^24), with its overlap
+    count: how many of the first `num_points` source points land in an occupied voxel of at
+    least one listed map, at the group's pose placed in map k by queries[k] = (map id, R
+    row-major, t of the left pose) (list the likeliest map first: a hit ends the search).
+    One launch instead of eight field reads and a separate overlap query; `serial` as in
+    `step`; without `overlap` the count is 0."""
+    ti.loop_config(serialize=serial)
     for g in range(num_groups):
         for a in ti.static(range(4)):
             out[g, a] = q_cur[g][a]
@@ -510,3 +551,36 @@ def download_results(num_groups: ti.i32, q_cur: ti.template(), t_cur: ti.templat
         out[g, 50] = ti.cast(best_n[g], ti.f32)
         out[g, 51] = ti.cast(iters[g], ti.f32)
         out[g, 52] = ti.cast(status[g], ti.f32)
+        hits = 0
+        if ti.static(overlap):
+            poses = ti.Vector.zero(ti.f32, MAX_OVERLAP_MAPS * 12)  # R (row major), t per query
+            R_g = quat_to_mat(q_cur[g])
+            for k in range(num_queries):
+                R_left = ti.math.mat3(0.0)
+                t_left = vec3(0.0)
+                for a in ti.static(range(3)):
+                    t_left[a] = queries[k, 10 + a]
+                    for b in ti.static(range(3)):
+                        R_left[a, b] = queries[k, 1 + 3 * a + b]
+                R = R_left @ R_g
+                t = R_left @ t_cur[g] + t_left
+                for a in ti.static(range(3)):
+                    poses[12 * k + 9 + a] = t[a]
+                    for b in ti.static(range(3)):
+                        poses[12 * k + 3 * a + b] = R[a, b]
+            for i in range(num_points):
+                hit = 0
+                p = src_pts[i]
+                for k in range(num_queries):
+                    m = ti.cast(queries[k, 0], ti.i32)
+                    o = 12 * k
+                    x = vec3(poses[o] * p[0] + poses[o + 1] * p[1] + poses[o + 2] * p[2],
+                             poses[o + 3] * p[0] + poses[o + 4] * p[1] + poses[o + 5] * p[2],
+                             poses[o + 6] * p[0] + poses[o + 7] * p[1] + poses[o + 8] * p[2]) \
+                        + vec3(poses[o + 9], poses[o + 10], poses[o + 11])
+                    if lookup(vox, ti.cast(ti.floor(x / res[m]), ti.i32), m, buckets,
+                              max_probes) >= 0:
+                        hit = 1
+                        break
+                hits += hit
+        out[g, 53] = ti.cast(hits, ti.f32)

@@ -9,9 +9,10 @@ is what makes it cheaper than a kd-tree: after downsampling every voxel holds on
 the k nearest points within 2 voxels (the usual case on surfaces) are found exactly, and a
 sparse point gets the k nearest of that block (fewer than `min_neighbors`: the identity).
 
-Two launches per scan: `downsample` (per chunk of raw points: free the previous scan's
-bricks, stage, insert, voxel means) and `plane_covariances`; few launches matter because
-a small scan's math costs less than launching kernels from Python.
+One launch per scan: `downsample` (per chunk of raw points: free the previous scan's
+bricks, stage, insert, voxel means, and after the last chunk optionally `plane_rows`, which
+`plane_covariances` also runs on its own); few launches matter because a small scan's math
+costs less than launching kernels from Python.
 """
 
 import taichi as ti
@@ -94,7 +95,8 @@ def stage_points(points: ti.types.ndarray(), times: ti.types.ndarray(), n: ti.i3
 def insert_points(n: ti.i32, first_chunk: ti.i32, voxel_m: ti.f32, stage_p: ti.template(),
                   stage_key: ti.template(),
                   stage_ok: ti.template(), slot_key: ti.template(), slot_brick: ti.template(),
-                  brick_slot: ti.template(), cells: ti.template(), voxel_key: ti.template(),
+                  brick_slot: ti.template(), cells: ti.template(), occupancy: ti.template(),
+                  voxel_key: ti.template(),
                   voxel_brick: ti.template(), voxel_sum: ti.template(),
                   voxel_count: ti.template(), counts: ti.template()):
     """Add the staged points to their voxels in one ordered pass (a new voxel gets the next
@@ -134,6 +136,8 @@ def insert_points(n: ti.i32, first_chunk: ti.i32, voxel_m: ti.f32, stage_p: ti.t
                                 brick_slot[brick] = si
                                 for c in range(BRICK_CELLS):
                                     cells[brick * BRICK_CELLS + c] = -1
+                                occupancy[2 * brick] = ti.u32(0)
+                                occupancy[2 * brick + 1] = ti.u32(0)
                             else:
                                 brick = -2
                         elif slot_key[si][0] == b[0] and slot_key[si][1] == b[1] \
@@ -145,13 +149,16 @@ def insert_points(n: ti.i32, first_chunk: ti.i32, voxel_m: ti.f32, stage_p: ti.t
                 if brick < 0:
                     overflow = 1
                 else:
-                    cell = brick * BRICK_CELLS + cell_of(key)
+                    local = cell_of(key)
+                    cell = brick * BRICK_CELLS + local
                     v = cells[cell]
                     if v < 0:
                         if num_voxels < max_voxels:
                             v = num_voxels
                             num_voxels += 1
                             cells[cell] = v
+                            occupancy[2 * brick + (local >> 5)] |= ti.u32(1) << ti.cast(
+                                local & 31, ti.u32)
                             voxel_key[v] = key
                             voxel_brick[v] = brick
                             voxel_sum[v] = vec3(0.0)
@@ -182,29 +189,61 @@ def downsample(points: ti.types.ndarray(), times: ti.types.ndarray(), n: ti.i32,
                max_range_m: ti.f32, voxel_m: ti.f32, knot_R: ti.template(),
                knot_t: ti.template(), stage_p: ti.template(), stage_key: ti.template(),
                stage_ok: ti.template(), slot_key: ti.template(), slot_brick: ti.template(),
-               brick_slot: ti.template(), cells: ti.template(), voxel_key: ti.template(),
-               voxel_brick: ti.template(), voxel_sum: ti.template(),
+               brick_slot: ti.template(), cells: ti.template(), occupancy: ti.template(),
+               voxel_key: ti.template(), voxel_brick: ti.template(), voxel_sum: ti.template(),
                voxel_count: ti.template(), counts: ti.template(),
-               out_pts: ti.template()) -> ti.i32:
+               out_pts: ti.template(), covariances: ti.template(), k: ti.i32,
+               min_neighbors: ti.i32, normal_variance: ti.f32, brick_start: ti.template(),
+               brick_count: ti.template(), brick_points: ti.template(),
+               out_plane: ti.template()) -> ti.i32:
     """One chunk of a scan's points through the grid in one launch: free the previous scan's
-    bricks (first chunk), stage, insert, and after the last chunk the voxel means. Returns
-    the voxel count, or -1 when a voxel or brick did not fit."""
+    bricks (first chunk), stage, insert, and after the last chunk the voxel means, then (with
+    `covariances`) their `plane_rows` into `out_plane`. Returns the voxel count, or -1 when a
+    voxel or brick did not fit (or, after the last chunk, the points do not fit `out_pts`)."""
     if first_chunk:
         clear_grid(counts, brick_slot, slot_brick)
     stage_points(points, times, n, deskew, twist_w, twist_v, t_first, t_step, min_range_m,
                  max_range_m, 1.0 / voxel_m, knot_R, knot_t, stage_p, stage_key, stage_ok)
     insert_points(n, first_chunk, voxel_m, stage_p, stage_key, stage_ok, slot_key, slot_brick,
-                  brick_slot, cells, voxel_key, voxel_brick, voxel_sum, voxel_count, counts)
+                  brick_slot, cells, occupancy, voxel_key, voxel_brick, voxel_sum, voxel_count,
+                  counts)
     if last_chunk:
         finalize_voxels(voxel_m, counts, voxel_key, voxel_sum, voxel_count, out_pts)
-    return ti.select(counts[None][2] != 0, -1, counts[None][0])
+    c = counts[None]
+    fits = c[2] == 0 and (not last_chunk or c[0] <= out_pts.shape[0])
+    if ti.static(covariances):
+        # a top-level loop over 0 points when there is nothing to do: a loop under an `if`
+        # would run on one thread
+        plane_rows(ti.select(fits and last_chunk, c[0], 0), counts, k, min_neighbors,
+                   normal_variance, voxel_brick, voxel_key, out_pts, slot_key, slot_brick,
+                   cells, occupancy, brick_start, brick_count, brick_points, out_plane)
+    return ti.select(fits, c[0], -1)
+
+
+@ti.func
+def bit_index(power_of_two: ti.u32) -> ti.i32:
+    """log2 of a power of two, read from the exponent of its float (exact; ti.math.clz does
+    not compile for Vulkan)."""
+    return ti.cast((ti.bit_cast(ti.cast(power_of_two, ti.f32), ti.u32) >> 23) & 255, ti.i32) - 127
+
+
+@ti.func
+def run_bits(first: ti.i32, last: ti.i32, width: ti.i32) -> ti.u32:
+    """Bits [first * width, (last + 1) * width) of a u32 (runs up to 16 bits)."""
+    return ((ti.u32(1) << ti.cast((last + 1) * width, ti.u32)) - ti.u32(1)) \
+        & ~((ti.u32(1) << ti.cast(first * width, ti.u32)) - ti.u32(1))
 
 
 @ti.func
 def gather(p: vec3, lo_key: ivec3, hi_key: ivec3, k: ti.i32, pts: ti.template(),
-           slot_key: ti.template(), slot_brick: ti.template(), cells: ti.template()):
+           slot_key: ti.template(), slot_brick: ti.template(), cells: ti.template(),
+           occupancy: ti.template()):
     """The k nearest points to p among the voxels [lo_key, hi_key] (a box), brick by brick,
-    unsorted (keep_nearest). Returns (how many, their indices)."""
+    unsorted (keep_nearest). Returns (how many, their indices).
+
+    Each brick's occupancy bits (cell x*16 + y*4 + z) masked by the box's cells give the
+    occupied cells directly, in the order of a loop over x, y, z: most cells of a box around
+    a surface point are empty, and skipping them is most of the search's time."""
     mask = ti.cast(slot_key.shape[0] - 1, ti.u32)
     dist = ti.Vector.zero(ti.f32, MAX_K)
     nbr = ti.Vector.zero(ti.i32, MAX_K)
@@ -218,18 +257,23 @@ def gather(p: vec3, lo_key: ivec3, hi_key: ivec3, k: ti.i32, pts: ti.template(),
                 b = ivec3(bx, by, bz)
                 brick = find_brick(b, slot_key, slot_brick, mask)
                 if brick >= 0:
-                    # the box's cells inside this brick, in brick-local coordinates; plain
-                    # loops (ti.ndrange would divide per cell)
+                    # the box's cells inside this brick, in brick-local coordinates
                     first = ti.max(lo_key, b * 4) - b * 4
                     last = ti.min(hi_key, b * 4 + 3) - b * 4
-                    for x in range(first[0], last[0] + 1):
-                        for y in range(first[1], last[1] + 1):
-                            row = brick * BRICK_CELLS + (x * 4 + y) * 4
-                            for z in range(first[2], last[2] + 1):
-                                u = cells[row + z]
-                                if u >= 0:
-                                    found, far, dist, nbr = keep_nearest(
-                                        u, (pts[u] - p).norm_sqr(), k, found, far, dist, nbr)
+                    yz = run_bits(first[1], last[1], 4) \
+                        & (run_bits(first[2], last[2], 1) * ti.u32(0x1111))
+                    for word in range(2):  # x = 2 word (low 16 bits), 2 word + 1 (high 16)
+                        x_lo = ti.select(first[0] <= 2 * word and 2 * word <= last[0],
+                                         yz, ti.u32(0))
+                        x_hi = ti.select(first[0] <= 2 * word + 1 and 2 * word + 1 <= last[0],
+                                         yz, ti.u32(0))
+                        bits = occupancy[2 * brick + word] & (x_lo | (x_hi << 16))
+                        while bits != 0:
+                            low = bits & (~bits + ti.u32(1))
+                            bits ^= low
+                            u = cells[brick * BRICK_CELLS + 32 * word + bit_index(low)]
+                            found, far, dist, nbr = keep_nearest(
+                                u, (pts[u] - p).norm_sqr(), k, found, far, dist, nbr)
     return found, nbr
 
 
@@ -299,14 +343,13 @@ def gather_bricks(p: vec3, key: ivec3, k: ti.i32, pts: ti.template(), slot_key: 
     return found, nbr
 
 
-@ti.kernel
-def plane_covariances(num_voxels: ti.i32, counts: ti.template(), k: ti.i32,
-                      min_neighbors: ti.i32, normal_variance: ti.f32, voxel_brick: ti.template(),
-                      voxel_key: ti.template(),
-                      pts: ti.template(), slot_key: ti.template(), slot_brick: ti.template(),
-                      cells: ti.template(), brick_start: ti.template(),
-                      brick_count: ti.template(), brick_points: ti.template(),
-                      out_plane: ti.template()):
+@ti.func
+def plane_rows(num_voxels: ti.i32, counts: ti.template(), k: ti.i32, min_neighbors: ti.i32,
+               normal_variance: ti.f32, voxel_brick: ti.template(), voxel_key: ti.template(),
+               pts: ti.template(), slot_key: ti.template(), slot_brick: ti.template(),
+               cells: ti.template(), occupancy: ti.template(), brick_start: ti.template(),
+               brick_count: ti.template(), brick_points: ti.template(),
+               out_plane: ti.template()):
     """Covariance of each point's k nearest points (itself included), plane-regularized:
     C = I - (1 - normal_variance) n nᵀ with n the normal, stored as (n, α=1,
     β=normal_variance-1, 0) (batch_gicp.plane_form's rows); the identity (α=1, β=0) with
@@ -320,7 +363,8 @@ def plane_covariances(num_voxels: ti.i32, counts: ti.template(), k: ti.i32,
     for v in range(num_voxels):
         key = voxel_key[v]
         p = pts[v]
-        found, nbr = gather(p, key - SEARCH, key + SEARCH, k, pts, slot_key, slot_brick, cells)
+        found, nbr = gather(p, key - SEARCH, key + SEARCH, k, pts, slot_key, slot_brick, cells,
+                            occupancy)
         if found < min_neighbors:
             found, nbr = gather_bricks(p, key, k, pts, slot_key, slot_brick, brick_start,
                                        brick_count, brick_points)
@@ -337,6 +381,21 @@ def plane_covariances(num_voxels: ti.i32, counts: ti.template(), k: ti.i32,
             n = smallest_eigenvector(S / ti.cast(found, ti.f32))
             row = ti.Vector([n[0], n[1], n[2], 1.0, normal_variance - 1.0, 0.0], ti.f32)
         out_plane[v] = row
+
+
+
+@ti.kernel
+def plane_covariances(num_voxels: ti.i32, counts: ti.template(), k: ti.i32,
+                      min_neighbors: ti.i32, normal_variance: ti.f32, voxel_brick: ti.template(),
+                      voxel_key: ti.template(),
+                      pts: ti.template(), slot_key: ti.template(), slot_brick: ti.template(),
+                      cells: ti.template(), occupancy: ti.template(),
+                      brick_start: ti.template(), brick_count: ti.template(),
+                      brick_points: ti.template(), out_plane: ti.template()):
+    """`plane_rows` of the first `num_voxels` points (see there)."""
+    plane_rows(num_voxels, counts, k, min_neighbors, normal_variance, voxel_brick, voxel_key,
+               pts, slot_key, slot_brick, cells, occupancy, brick_start, brick_count,
+               brick_points, out_plane)
 
 
 @ti.func

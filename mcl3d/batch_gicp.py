@@ -14,10 +14,11 @@ import numpy as np
 
 from mcl3d.errors import ConfigError, PointCloudError
 from mcl3d.gaussian_voxels import GaussianVoxelMaps, check_points
-from mcl3d.geometry import quat_to_rot, rot_to_quat, se3
+from mcl3d.geometry import quat_to_rot, se3
 
 STATUS_NAMES = ("running", "converged", "no correspondences", "stalled")
 SERIAL_GROUPS = 64  # fewer poses: solve and reset them on the calling thread
+SERIAL_CORRESPONDENCES = 1 << 15  # fewer: linearize on the calling thread (~0.25 ms on cpu)
 PLANE_FORM_RTOL = 1e-6  # what plane_form may change of a covariance, relative to its largest entry
 
 
@@ -65,6 +66,18 @@ def plane_form(covs: np.ndarray) -> np.ndarray | None:
     return np.c_[n, alpha, beta, np.zeros(len(covs))]
 
 
+def pose_rows(T: np.ndarray, n: int) -> np.ndarray:
+    """(n, 12) f32 rows (R row-major, t) of 4x4 poses (one pose is repeated) for the kernels,
+    which turn them into quaternions: cheaper than converting on the host per scan."""
+    T = np.asarray(T, np.float64).reshape(-1, 4, 4)
+    if len(T) not in (1, n) or not np.isfinite(T).all():
+        raise ConfigError(f"expected {n} finite 4x4 poses, got shape {T.shape}")
+    out = np.empty((n, 12), np.float32)
+    out[:, :9] = T[:, :3, :3].reshape(-1, 9)
+    out[:, 9:] = T[:, :3, 3]
+    return out
+
+
 @dataclass
 class BatchResult:
     """Per pose: the optimized pose, and H, b, error, inliers at that pose (see kernels/gicp)."""
@@ -76,6 +89,7 @@ class BatchResult:
     num_inliers: np.ndarray  # (G,)
     iterations: np.ndarray  # (G,) linearizations used
     status: np.ndarray  # (G,) 0 running (out of iterations), 1 converged, 2 lost, 3 stalled
+    overlap: np.ndarray | None = None  # (G,) when asked for: see BatchGicp.result
 
     @property
     def converged(self) -> np.ndarray:
@@ -128,6 +142,8 @@ class BatchGicp:
         self.num_source = 0
         self.plane_covs = False  # src_cov rows hold (n, α, β, 0), see plane_form
         self._tasks: tuple | None = None  # per-task sums of a split linearization
+        self.serial_correspondences = SERIAL_CORRESPONDENCES if maps.runtime.backend == "cpu" \
+            else 0
 
     def set_source(self, points: np.ndarray, covs: np.ndarray) -> None:
         """Upload the source pool (points in the source frame, covariances (N, 3, 3)).
@@ -194,23 +210,20 @@ class BatchGicp:
             raise ConfigError("row_group must index the poses and row_map must match it")
         if row_map.min() < 0 or row_map.max() >= self.maps.max_maps:
             raise ConfigError(f"row_map holds a map id outside 0..{self.maps.max_maps - 1}")
-        if any(self.maps.voxel_size(int(m)) <= 0 for m in np.unique(row_map)):
+        if min(self.maps.voxel_size(int(m)) for m in set(row_map.tolist())) <= 0:
             raise ConfigError("a row refers to a map that was never filled")
         if not np.isfinite(T_init).all():
             raise ConfigError("initial poses contain NaN or inf")
-        T_left = np.tile(np.eye(4), (R, 1, 1)) if T_left is None else np.asarray(T_left)
         start = np.zeros(R, np.int32) if row_start is None else np.asarray(row_start, np.int32)
         count = (np.full(R, self.num_source, np.int32) if row_count is None
                  else np.asarray(row_count, np.int32))
         if (start < 0).any() or (start + count > self.num_source).any():
             raise ConfigError(f"row point ranges exceed the {self.num_source} source points")
-        rows_i = np.ascontiguousarray(np.c_[row_group, row_map, start, count], np.int32)
-        rows_f = np.ascontiguousarray(np.c_[rot_to_quat(T_left[:, :3, :3]), T_left[:, :3, 3]],
-                                      np.float32)
-        poses = np.ascontiguousarray(np.c_[rot_to_quat(T_init[:, :3, :3]), T_init[:, :3, 3]],
-                                     np.float32)
-        gicp.upload_problem(rows_i, rows_f, R, poses, G, self.row_group, self.row_map,
-                            self.row_start, self.row_count, self.row_q, self.row_t,
+        rows_i = np.empty((R, 4), np.int32)
+        rows_i[:, 0], rows_i[:, 1], rows_i[:, 2], rows_i[:, 3] = row_group, row_map, start, count
+        rows_f = pose_rows(np.eye(4)[None] if T_left is None else T_left, R)
+        gicp.upload_problem(rows_i, rows_f, R, pose_rows(T_init, G), G, self.row_group,
+                            self.row_map, self.row_start, self.row_count, self.row_q, self.row_t,
                             self.q_cand, self.t_cand, lm_lambda, self.q_cur, self.t_cur,
                             self.lam, self.status, self.iters, self.acc_H, self.acc_b,
                             self.acc_e, self.acc_n, self.best_n, G < SERIAL_GROUPS)
@@ -240,7 +253,10 @@ class BatchGicp:
 
     def default_chunk(self) -> int:
         """Points per task: whole rows when the batch alone fills the threads (few atomics on
-        cpu), smaller chunks so that one pose still spreads over every thread or GPU lane."""
+        cpu) or runs on one thread anyway (`serial_correspondences`), smaller chunks so that
+        one pose still spreads over every thread or GPU lane."""
+        if self._serial_linearize():
+            return self._max_count
         tasks = 256 if self.maps.runtime.backend == "cpu" else 65536
         work = self._rows * self._max_count
         return int(min(self._max_count, max(64, -(-work // tasks))))
@@ -266,7 +282,11 @@ class BatchGicp:
                             self.q_cand, self.t_cand, self.lam, self.status, self.iters,
                             self.acc_H, self.acc_b, self.acc_e, self.acc_n, self.best_H,
                             self.best_b, self.best_e, self.best_n,
-                            self._groups < SERIAL_GROUPS)
+                            self._groups < SERIAL_GROUPS, self._serial_linearize())
+
+    def _serial_linearize(self) -> bool:
+        """Few correspondences: linearize on the calling thread (see kernels/gicp.linearize)."""
+        return self._rows * self._max_count <= self.serial_correspondences
 
     def _task_sums(self, tasks: int) -> tuple:
         """Per-task sums for a split linearization (fields grown on demand, never shrunk)."""
@@ -280,23 +300,49 @@ class BatchGicp:
 
     def optimize(self, max_iterations: int = 20, use_lm: bool = False,
                  rotation_eps_rad: float = 1e-3 * np.pi / 180,
-                 translation_eps_m: float = 1e-4) -> BatchResult:
-        """Iterate until every pose converged or `max_iterations` linearizations were used.
+                 translation_eps_m: float = 1e-4, overlap_maps: list[int] | None = None,
+                 overlap_T_left: np.ndarray | None = None) -> BatchResult:
+        """Iterate until every pose converged or `max_iterations` linearizations were used,
+        then `result` (with the overlap when `overlap_maps` are given).
         With max_iterations=1 this only evaluates H, b, error at the initial poses."""
         if max_iterations < 1:
             raise ConfigError(f"max_iterations must be >= 1, got {max_iterations}")
         for _ in range(max_iterations):
             if self.iterate(use_lm, rotation_eps_rad, translation_eps_m) == 0:
                 break
-        return self.result()
+        return self.result(overlap_maps, overlap_T_left)
 
-    def result(self) -> BatchResult:
+    def result(self, overlap_maps: list[int] | None = None,
+               overlap_T_left: np.ndarray | None = None) -> BatchResult:
+        """The current state of every pose. With `overlap_maps`, also each pose's overlap: the
+        fraction of the source pool that lands in an occupied voxel of at least one of those
+        maps, the pool placed in map k at `overlap_T_left[k] @ T` (list the likeliest first).
+        One launch either way."""
         from mcl3d.kernels import gicp
 
         G = self._groups
+        maps = self.maps
+        queries = np.zeros((1, 13), np.float32)
+        num_queries = 0
+        if overlap_maps is not None:
+            ids = np.asarray(overlap_maps, np.int64).ravel()
+            T_left = np.asarray(overlap_T_left, np.float64).reshape(-1, 4, 4)
+            if len(ids) != len(T_left) or not 1 <= len(ids) <= gicp.MAX_OVERLAP_MAPS:
+                raise ConfigError(f"overlap needs one left pose per map and 1.."
+                                  f"{gicp.MAX_OVERLAP_MAPS} maps")
+            if ids.min() < 0 or ids.max() >= maps.max_maps or \
+                    min(maps.voxel_size(int(m)) for m in ids) <= 0:
+                raise ConfigError("overlap lists a map that does not exist or was never filled")
+            queries = np.empty((len(ids), 13), np.float32)
+            queries[:, 0] = ids
+            queries[:, 1:] = pose_rows(T_left, len(ids))
+            num_queries = len(ids)
         out = np.empty((G, gicp.RESULT_COLUMNS), np.float32)
         gicp.download_results(G, self.q_cur, self.t_cur, self.best_H, self.best_b, self.best_e,
-                              self.best_n, self.iters, self.status, out)
+                              self.best_n, self.iters, self.status, self.src_pts,
+                              self.num_source if num_queries else 0, queries, num_queries,
+                              maps.vox, maps.res, maps.buckets, maps.max_probes, out,
+                              G < SERIAL_GROUPS, num_queries > 0)
         out = out.astype(np.float64)
         return BatchResult(
             T=se3(quat_to_rot(out[:, :4]), out[:, 4:7]),
@@ -306,4 +352,5 @@ class BatchGicp:
             num_inliers=out[:, 50].astype(np.int64),
             iterations=out[:, 51].astype(np.int64),
             status=out[:, 52].astype(np.int64),
+            overlap=out[:, 53] / max(self.num_source, 1) if num_queries else None,
         )

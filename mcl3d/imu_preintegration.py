@@ -67,13 +67,19 @@ def preintegrate(stamps_s: np.ndarray, gyro: np.ndarray, accel: np.ndarray, t0_s
     inside = (stamps > t0_s) & (stamps < t1_s)
     bounds = np.concatenate([[t0_s], stamps[inside], [t1_s]])
     held = np.clip(np.searchsorted(stamps, bounds[:-1], side="right") - 1, 0, len(stamps) - 1)
-    delta_rot, delta_v, delta_p = np.eye(3), np.zeros(3), np.zeros(3)
-    for k, dt in zip(held, np.diff(bounds), strict=True):
-        a = delta_rot @ (accel[k] - ba)
-        delta_p = delta_p + delta_v * dt + 0.5 * a * dt * dt
-        delta_v = delta_v + a * dt
-        delta_rot = delta_rot @ so3_exp((gyro[k] - bg) * dt)
-    return Preintegrated(float(t1_s - t0_s), delta_rot, delta_v, delta_p)
+    dt = np.diff(bounds)[:, None]
+    steps = so3_exp((gyro[held] - bg) * dt)  # every interval's rotation at once
+    rots = np.empty((len(dt), 3, 3))  # ΔR at the start of each interval
+    rot = np.eye(3)
+    for k, step in enumerate(steps):
+        rots[k] = rot
+        rot = rot @ step
+    a = np.einsum("kij,kj->ki", rots, accel[held] - ba)  # ΔR (a - b_a), frame at t0
+    dv = a * dt
+    v_before = np.zeros_like(dv)  # Δv at the start of each interval
+    np.cumsum(dv[:-1], axis=0, out=v_before[1:])
+    delta_p = (v_before * dt + 0.5 * a * dt * dt).sum(axis=0)
+    return Preintegrated(float(t1_s - t0_s), rot, dv.sum(axis=0), delta_p)
 
 
 def gravity_from_static(accel: np.ndarray, R_world_imu: np.ndarray) -> np.ndarray:

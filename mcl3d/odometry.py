@@ -26,6 +26,7 @@ from mcl3d.imu_preintegration import Preintegrated, gravity_from_static, preinte
 from mcl3d.preprocess import ScanGrid, deskew, estimate_covariances, voxel_downsample
 
 LOST_COVARIANCE = 1e6  # variance (rad², m²) of a motion that could not be measured
+MEDIAN_SAMPLE = 2048  # points sampled (at least this many, evenly) for the mid-sweep time
 
 
 class OdometryConfig(Section):
@@ -40,8 +41,8 @@ class OdometryConfig(Section):
     max_range_m: float = Field(100.0, gt=0, description="drop points farther than this (m)")
     keyframe_overlap: float = Field(0.7, gt=0, le=1, description="new keyframe when the "
                                     "scan's overlap with the keyframes drops below this")
-    max_keyframes: int = Field(10, ge=1, description="keyframes in the local map (oldest "
-                               "evicted)")
+    max_keyframes: int = Field(10, ge=1, le=64, description="keyframes in the local map "
+                               "(oldest evicted; the overlap test lists them all, at most 64)")
     registration_keyframes: int = Field(3, ge=1, description="register against this many "
                                         "keyframes nearest to the predicted pose")
     max_iterations: int = Field(20, ge=1, description="Gauss-Newton iterations per scan")
@@ -136,7 +137,8 @@ class Odometry:
         """Start over (a new log, with its IMU extrinsic) and keep the device fields: they
         are sized once, and a keyframe's maps are cleared when it is (re)inserted."""
         self.T_lidar_imu = np.eye(4) if T_lidar_imu is None else np.asarray(T_lidar_imu)
-        self.keyframes: list[tuple[int, np.ndarray]] = []  # (slot, T_world_keyframe)
+        # (slot, T_world_keyframe, T_keyframe_world)
+        self.keyframes: list[tuple[int, np.ndarray, np.ndarray]] = []
         self.next_slot = 0
         self.frames: list[OdometryFrame] = []
         self.v_world_imu: np.ndarray | None = None
@@ -197,8 +199,11 @@ class Odometry:
             times = np.asarray(times_s, dtype=np.float64).ravel()
         t_ref = 0.0
         if times is not None:
-            r2 = np.einsum("ij,ij->i", points, points)  # NaN and inf fail both tests
-            kept = times[(r2 >= cfg.min_range_m**2) & (r2 <= cfg.max_range_m**2)]
+            # the median over an even sample (MEDIAN_SAMPLE): as good a mid-sweep time
+            stride = max(1, len(points) // MEDIAN_SAMPLE)
+            sample = points[::stride]
+            r2 = (sample * sample).sum(axis=1)  # NaN and inf fail both tests
+            kept = times[::stride][(r2 >= cfg.min_range_m**2) & (r2 <= cfg.max_range_m**2)]
             t_ref = float(np.median(kept)) if len(kept) else 0.0
         t_mid = stamp_ns * 1e-9 + t_ref
         if first:
@@ -228,9 +233,8 @@ class Odometry:
         if cfg.k_neighbors <= MAX_K:
             n = self.grid.downsample(points, cfg.voxel_size_m, self.gicp.src_pts, times,
                                      None if times is None else xi, cfg.min_range_m,
-                                     cfg.max_range_m)
+                                     cfg.max_range_m, self.gicp.src_cov, cfg.k_neighbors)
             if n is not None:
-                self.grid.covariances(self.gicp.src_pts, self.gicp.src_cov, cfg.k_neighbors)
                 self.gicp.use_device_source(n, plane_covs=True)
                 return n
         r = np.linalg.norm(points, axis=1)
@@ -266,14 +270,19 @@ class Odometry:
                                  True, [f"scan has only {num_points} usable points: pose "
                                         "predicted, not measured"]), T_pred
         rows, lefts = [], []
-        for slot, T_world_kf in self._nearest_keyframes(T_pred):
+        for slot, _, T_kf_world in self._nearest_keyframes(T_pred):
             for level in range(cfg.map_levels):
                 rows.append(slot * cfg.map_levels + level)
-                lefts.append(se3_inverse(T_world_kf))
+                lefts.append(T_kf_world)
         self.gicp.set_problem(T_pred[None], row_group=np.zeros(len(rows)), row_map=rows,
                               T_left=np.stack(lefts))
-        out = self.gicp.optimize(cfg.max_iterations)
+        newest_first = self.keyframes[::-1]  # the likeliest hit first: fewer lookups
+        out = self.gicp.optimize(
+            cfg.max_iterations,
+            overlap_maps=[slot * cfg.map_levels + cfg.map_levels - 1 for slot, *_ in newest_first],
+            overlap_T_left=np.stack([T_kf_world for *_, T_kf_world in newest_first]))
         T, H, inliers = out.T[0], out.H[0], int(out.num_inliers[0])
+        overlap = float(out.overlap[0])
         warnings = []
         if inliers < cfg.min_inliers:
             warnings.append(f"registration lost: {inliers} correspondences; pose predicted")
@@ -282,10 +291,6 @@ class Odometry:
             warnings += degeneracy(H, cfg.degeneracy_ratio, cfg.rotation_degeneracy_ratio)
             degenerate = bool(warnings)
             cov = np.linalg.pinv(H) if degenerate else np.linalg.inv(H)
-        newest_first = self.keyframes[::-1]  # the likeliest hit first: fewer lookups
-        coarse = [slot * cfg.map_levels + cfg.map_levels - 1 for slot, _ in newest_first]
-        overlap = self.maps.overlap_of(self.gicp.src_pts, num_points, coarse,
-                                       [se3_inverse(T_kf) @ T for _, T_kf in newest_first])
         frame = OdometryFrame(stamp_ns, eye, eye, cov, num_points, inliers,
                               int(out.iterations[0]), bool(out.converged[0]), False, overlap,
                               degenerate, warnings)
@@ -294,9 +299,9 @@ class Odometry:
             frame.keyframe = True
         return frame, T
 
-    def _nearest_keyframes(self, T_world_lidar: np.ndarray) -> list[tuple[int, np.ndarray]]:
+    def _nearest_keyframes(self, T_world_lidar: np.ndarray) -> list[tuple]:
         """The `registration_keyframes` keyframes closest to the predicted position."""
-        d = [np.linalg.norm(T[:3, 3] - T_world_lidar[:3, 3]) for _, T in self.keyframes]
+        d = [np.linalg.norm(T[:3, 3] - T_world_lidar[:3, 3]) for _, T, _ in self.keyframes]
         keep = np.argsort(d, kind="stable")[:self.cfg.registration_keyframes]
         return [self.keyframes[i] for i in sorted(keep)]
 
@@ -314,7 +319,7 @@ class Odometry:
             map_id = slot * cfg.map_levels + level
             self.maps.clear(map_id, self.map_voxel_size_m * 2**level)
             self.maps.insert_rows(map_id, g.src_pts, g.src_cov, g.num_source, g.plane_covs)
-        self.keyframes.append((slot, T_world_lidar.copy()))
+        self.keyframes.append((slot, T_world_lidar.copy(), se3_inverse(T_world_lidar)))
 
     def _update_velocity(self, t_mid_s: float, T_mid: np.ndarray, pre: Preintegrated | None,
                          imu_samples: np.ndarray | None) -> None:

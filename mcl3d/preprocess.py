@@ -2,7 +2,7 @@
 
 The functions work on any cloud on the host (numpy, scipy's cKDTree for exact k nearest
 neighbours) with Taichi kernels for the per-point math. `ScanGrid` does the whole chain for
-one scan on the device in two launches (a voxel-hash neighbour search instead of a kd-tree)
+one scan on the device in one launch (a voxel-hash neighbour search instead of a kd-tree)
 and leaves the result where registration reads it: what odometry runs per scan.
 """
 
@@ -166,6 +166,7 @@ class ScanGrid:
         self.slot_brick = ti.field(ti.i32, slots)
         self.brick_slot = ti.field(ti.i32, max_voxels)
         self.cells = ti.field(ti.i32, max_voxels * 64)
+        self.occupancy = ti.field(ti.u32, max_voxels * 2)  # 64 bits per brick: cells in use
         self.voxel_key = ti.Vector.field(3, ti.i32, max_voxels)
         self.voxel_brick = ti.field(ti.i32, max_voxels)
         self.brick_start = ti.field(ti.i32, max_voxels)
@@ -182,13 +183,18 @@ class ScanGrid:
 
     def downsample(self, points: np.ndarray, voxel_size_m: float, out_pts,
                    times_s: np.ndarray | None = None, twist: np.ndarray | None = None,
-                   min_range_m: float = 0.0, max_range_m: float = np.inf) -> int | None:
+                   min_range_m: float = 0.0, max_range_m: float = np.inf, out_rows=None,
+                   k_neighbors: int = 10) -> int | None:
         """Voxel means of the points within [min_range_m, max_range_m] (NaN/inf dropped),
         deskewed by `twist` over `times_s` when both are given (as `deskew`), into `out_pts`
         (a vec3 field); returns their count, or None when they do not fit (more voxels than
-        `max_voxels` or the field), so the caller takes the host path."""
+        `max_voxels` or the field), so the caller takes the host path. With `out_rows`, also
+        their `covariances` (k_neighbors) in the same launch."""
         from mcl3d.kernels import scan_grid
 
+        if out_rows is not None and not MIN_NEIGHBORS <= k_neighbors <= scan_grid.MAX_K:
+            raise ConfigError(f"k_neighbors must be in {MIN_NEIGHBORS}..{scan_grid.MAX_K} on "
+                              f"the device, got {k_neighbors}")
         pts = np.asarray(points, dtype=np.float64)
         if pts.ndim != 2 or pts.shape[1] < 3:
             raise PointCloudError(f"points must be an (N, 3) array; got shape {pts.shape}")
@@ -219,8 +225,10 @@ class ScanGrid:
                 int(start == starts[-1]), int(use_deskew), tw[:3], tw[3:], t_first, t_step,
                 min_range_m, max_range, voxel_size_m, self.knot_R, self.knot_t, self.stage_p,
                 self.stage_key, self.stage_ok, self.slot_key, self.slot_brick, self.brick_slot,
-                self.cells, self.voxel_key, self.voxel_brick, self.voxel_sum, self.voxel_count,
-                self.counts, out_pts)
+                self.cells, self.occupancy, self.voxel_key, self.voxel_brick, self.voxel_sum,
+                self.voxel_count, self.counts, out_pts, out_rows is not None, k_neighbors,
+                MIN_NEIGHBORS, PLANE_EIGENVALUES[0], self.brick_start, self.brick_count,
+                self.brick_points, self.brick_points if out_rows is None else out_rows)
         if count < 0 or count > min(self.max_voxels, out_pts.shape[0]):
             self.num_voxels = 0
             return None
@@ -238,8 +246,8 @@ class ScanGrid:
         scan_grid.plane_covariances(self.num_voxels, self.counts, k_neighbors, MIN_NEIGHBORS,
                                     PLANE_EIGENVALUES[0], self.voxel_brick, self.voxel_key,
                                     pts, self.slot_key, self.slot_brick, self.cells,
-                                    self.brick_start, self.brick_count, self.brick_points,
-                                    out_rows)
+                                    self.occupancy, self.brick_start, self.brick_count,
+                                    self.brick_points, out_rows)
 
 
 def plane_rows_to_covs(rows: np.ndarray) -> np.ndarray:

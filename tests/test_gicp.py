@@ -374,3 +374,44 @@ def test_general_source_covariances_take_the_general_path_and_match_numpy(ti_run
             np.testing.assert_allclose(out.error[k], err, rtol=1e-4)
             np.testing.assert_allclose(out.b[k], b, rtol=1e-3, atol=1e-3 * np.abs(b).max())
             np.testing.assert_allclose(out.H[k], H, rtol=1e-3, atol=1e-4 * np.abs(H).max())
+
+
+def test_result_overlap_matches_numpy(problem):
+    """result(overlap_maps=...) counts, at each pose's final T, the source points that land
+    in an occupied voxel of any listed map at T_left @ T: NumPy reference per pose."""
+    gicp, src = problem["gicp"], problem["src"]
+    index0, index1 = problem["vox"][0], problem["vox1"][0]
+    T_shift = problem["T_shift"]
+    poses = np.stack([se3(so3_exp([0.0, 0.0, 0.02 * g]), [0.4 * g, 0.1, 0.0])
+                      for g in range(4)])
+    gicp.set_problem(poses, row_group=np.arange(4), row_map=np.zeros(4))
+    out = gicp.optimize(max_iterations=1, overlap_maps=[1, 0],
+                        overlap_T_left=np.stack([T_shift, np.eye(4)]))
+    for g in range(4):
+        keys0 = np.floor(transform_points(out.T[g], src) / RES).astype(int)
+        keys1 = np.floor(transform_points(T_shift @ out.T[g], src) / RES).astype(int)
+        hits = [tuple(a) in index0 or tuple(b) in index1 for a, b in zip(keys0, keys1,
+                                                                         strict=True)]
+        assert out.overlap[g] == pytest.approx(np.mean(hits), abs=1.5 / len(src))
+    assert gicp.result().overlap is None
+    from mcl3d.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="overlap"):
+        gicp.result(overlap_maps=[0, 1], overlap_T_left=np.eye(4)[None])
+
+
+def test_initial_poses_upload_as_matrices_on_every_quaternion_branch(problem):
+    """set_problem sends rotation matrices and the kernel turns them into quaternions
+    (Shepperd: trace, then the largest diagonal entry): all four branches against numpy."""
+    from mcl3d.geometry import rot_to_quat
+
+    gicp = problem["gicp"]
+    rotations = [so3_exp([0.1, -0.2, 0.3]), so3_exp([3.0, 0.2, 0.1]),
+                 so3_exp([0.1, 3.0, -0.2]), so3_exp([0.2, -0.1, 3.0])]
+    poses = np.stack([se3(R, [1.0, -2.0, 0.5 * g]) for g, R in enumerate(rotations)])
+    gicp.set_problem(poses, row_group=np.arange(4), row_map=np.zeros(4), T_left=poses[::-1])
+    np.testing.assert_allclose(gicp.q_cand.to_numpy()[:4], rot_to_quat(poses[:, :3, :3]),
+                               atol=1e-6)
+    np.testing.assert_allclose(gicp.t_cand.to_numpy()[:4], poses[:, :3, 3], atol=1e-6)
+    np.testing.assert_allclose(gicp.row_q.to_numpy()[:4], rot_to_quat(poses[::-1, :3, :3]),
+                               atol=1e-6)
