@@ -8,9 +8,9 @@ the keyframes, the likelihood against 3 neighbours, and pruning, i.e. everything
 odometry front-end, which is timed on the same scans in the same run as the baseline.
 
     python bench/bench_slam.py [--backend cpu|cuda|vulkan] [--particles 1000 10000 100000]
-                               [--keyframes 10 100] [--repeats 5]
+                               [--keyframes 10 100] [--repeats 5] [--out FILE.json]
 
-Writes a table and bench/results/bench_slam.json.
+Writes a table and bench/results/bench_slam.json (or --out).
 """
 
 from __future__ import annotations
@@ -88,7 +88,8 @@ def setup(n: int, K: int, scans, poses):
         noisy = poses[k % len(poses)][None] @ se3_exp(rng.normal(0, 0.01, (n, 6)))
         p.q_cur.from_numpy(_quats(noisy))
         p.t_cur.from_numpy(noisy[:, :3, 3].astype(np.float32))
-        p.add_keyframe(float(k))
+        pos = poses[k % len(poses)][:3, 3]
+        p.add_keyframe(float(k), 1e-5 * np.r_[k, k * pos, k], pos)  # even drift, 1 m apart
         pts, cv = thin(down, covs, cfg.keyframe_points)
         slam.maps.clear(k, cfg.keyframe_voxel_m)
         slam.maps.insert(k, pts, cv)
@@ -117,8 +118,10 @@ def one_frame(slam, num_src: int, travel_m: float, step: int) -> dict[str, float
     looping = p.select_neighbours(travel_m, cfg.loop_min_travel_m)
     ti.sync()
     t2 = time.perf_counter()
-    p.correct(travel_m, num_src, cfg.min_inliers, np.deg2rad(cfg.max_correction_deg),
-              cfg.max_correction_m)
+    here = p.positions()[0]
+    p.correct(travel_m, 1e-5 * np.r_[travel_m, travel_m * here, travel_m], here, num_src,
+              cfg.min_inliers, np.deg2rad(cfg.max_correction_deg), cfg.max_correction_m,
+              np.deg2rad(cfg.settled_correction_deg), cfg.settled_correction_m)
     ti.sync()
     t3 = time.perf_counter()
     p.weigh(num_src, cfg.outlier_cost, cfg.points_weight)
@@ -144,6 +147,7 @@ def main() -> None:
     ap.add_argument("--particles", type=int, nargs="+", default=[1000, 10000, 100000])
     ap.add_argument("--keyframes", type=int, nargs="+", default=[10, 100])
     ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--out", type=Path, default=RESULTS / "bench_slam.json")
     args = ap.parse_args()
     info = runtime.init(args.backend)
     scans, poses = read_scans(forest_log(), 40)
@@ -173,8 +177,8 @@ def main() -> None:
             del slam
     out = {"backend": info.backend, "device": info.device, "machine": platform.processor()
            or platform.machine(), "odometry_ms_per_scan": base_ms, "rows": rows}
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "bench_slam.json").write_text(json.dumps(out, indent=2))
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(out, indent=2))
     print(f"odometry front-end (baseline, same scans): {base_ms:.1f} ms/scan; "
           f"{info.backend} on {info.device}")
 

@@ -11,7 +11,7 @@ Each run goes through `mcl3d.slam_pipeline.run`, the code behind `mcl3d slam`. A
 SE(3)-aligned RMSE (`evo_ape -a`). Logs are cached under bench/results/study_slam/.
 
     python bench/study_slam.py [--particles 2000] [--seeds 1 2 3] [--cases forest] \
-        [--backend cpu] [--out bench/results/study_slam.json]
+        [--backend cpu] [--out bench/results/study_slam.json] [--runs FOLDER]
 """
 
 from __future__ import annotations
@@ -70,6 +70,9 @@ def main() -> None:
     ap.add_argument("--cases", nargs="+", default=list(CASES))
     ap.add_argument("--backend", default="cpu")
     ap.add_argument("--out", type=Path, default=RESULTS / "study_slam.json")
+    ap.add_argument("--runs", type=Path, default=RESULTS / "study_slam",
+                    help="folder for each run's outputs (the logs stay cached in "
+                         "bench/results/study_slam/)")
     args = ap.parse_args()
     info = runtime.init(args.backend)
     rows = []
@@ -77,7 +80,7 @@ def main() -> None:
         case = CASES[name]
         for seed in args.seeds:
             log = simulate(case, seed)
-            out = RESULTS / "study_slam" / f"{name.replace(', ', '_').replace(' ', '_')}_{seed}"
+            out = args.runs / f"{name.replace(', ', '_').replace(' ', '_')}_{seed}"
             result = run(SlamRequest(log=log, output_dir=out, force=True,
                                      overrides={"particles": args.particles, "seed": seed,
                                                 **case["slam"]}), progress=False)

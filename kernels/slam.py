@@ -27,6 +27,7 @@ from mcl3d.kernels.se3 import (
 
 vec3 = ti.math.vec3
 vec4 = ti.math.vec4
+vec5 = ti.types.vector(5, ti.f32)
 vec6 = ti.types.vector(6, ti.f32)
 mat6 = ti.types.matrix(6, 6, ti.f32)
 NEIGHBOURS = 3  # keyframes per particle in the likelihood (the paper's choice)
@@ -75,14 +76,16 @@ def shift_vertical(n: ti.i32, shift: vec3, up: vec3, sigma_m: ti.f32, seed: ti.u
 
 @ti.kernel
 def select_neighbours(n: ti.i32, num_kf: ti.i32, kf: ti.types.ndarray(ndim=3),
-                      t_cur: ti.template(), kf_travel: ti.types.ndarray(ndim=1),
-                      travel_now_m: ti.f32, loop_min_travel_m: ti.f32, up: vec3,
+                      q_cur: ti.template(), t_cur: ti.template(),
+                      kf_travel: ti.types.ndarray(ndim=1), travel_now_m: ti.f32,
+                      loop_min_travel_m: ti.f32, min_facing_cos: ti.f32, up: vec3,
                       max_dz_m: ti.f32, nb: ti.template(), nb_loop: ti.template()) -> ti.i32:
     """The 3 keyframes nearest to each particle's current position in its own map (ties go
     to the older keyframe), leaving out keyframes more than `max_dz_m` above or below it
-    (another floor); a neighbour is a loop when it is not one of the 3 newest keyframes and
-    the odometry travelled more than `loop_min_travel_m` since it. Returns how many particles
-    see a loop."""
+    (another floor); a neighbour is a loop when it is not one of the 3 newest keyframes, the
+    odometry travelled more than `loop_min_travel_m` since it, and its lidar faces within
+    acos(min_facing_cos) of the particle's (+x axes). Returns how many particles see a
+    loop."""
     looping = 0
     for i in range(n):
         p = t_cur[i]
@@ -102,12 +105,16 @@ def select_neighbours(n: ti.i32, num_kf: ti.i32, kf: ti.types.ndarray(ndim=3),
                 else:
                     best[2], idx[2] = d2, k
         any_loop = 0
+        forward = quat_rotate(q_cur[i], vec3(1.0, 0.0, 0.0))
         for j in ti.static(range(NEIGHBOURS)):
             k = idx[j]
             nb[i, j] = k
             is_loop = 0
             if k >= 0 and k < num_kf - NEIGHBOURS:
-                is_loop = ti.select(travel_now_m - kf_travel[k] > loop_min_travel_m, 1, 0)
+                q_kf, _ = load_keyframe(kf, i, k)
+                facing = quat_rotate(q_kf, vec3(1.0, 0.0, 0.0)).dot(forward)
+                is_loop = ti.select(travel_now_m - kf_travel[k] > loop_min_travel_m
+                                    and facing >= min_facing_cos, 1, 0)
             nb_loop[i, j] = is_loop
             any_loop |= is_loop
         looping += any_loop
@@ -141,14 +148,27 @@ def build_rows(n: ti.i32, kf: ti.types.ndarray(ndim=3), q_cur: ti.template(),
         t_cand[g] = t_cur[i]
 
 
+@ti.func
+def clamped_step(q: vec4, t: vec3, H: mat6, b: vec6, max_rot_rad: ti.f32, max_trans_m: ti.f32):
+    """T exp(ψ), ψ = -H⁻¹ b (small_gicp's sign convention) scaled into the trust region;
+    returns the new pose and the rotation vector of the step in the world frame."""
+    step = damped_step(H, b, GN_DAMPING)
+    w = vec3(step[0], step[1], step[2])
+    v = vec3(step[3], step[4], step[5])
+    scale = ti.min(ti.min(1.0, max_rot_rad / ti.max(w.norm(), 1e-12)),
+                   max_trans_m / ti.max(v.norm(), 1e-12))
+    q_new, t_new = pose_retract(q, t, w * scale, v * scale)
+    return q_new, t_new, quat_rotate(q, w * scale)
+
+
 @ti.kernel
 def correct(n: ti.i32, nb_loop: ti.template(), best_H: ti.template(), best_b: ti.template(),
             best_n: ti.template(), min_inliers: ti.i32, max_rot_rad: ti.f32,
             max_trans_m: ti.f32, q_cur: ti.template(), t_cur: ti.template(),
             shift: ti.template(), corrected: ti.template()):
-    """Eq. 5-7: ψ = -H⁻¹ b from the loop neighbours' terms (small_gicp's sign convention),
-    clamped to a trust region, and T_i <- T_i exp(ψ). `shift` keeps the move in the world
-    frame (rotation vector, translation) for `propagate`."""
+    """Eq. 5-7: ψ = -H⁻¹ b from the loop neighbours' terms, clamped to a trust region, and
+    T_i <- T_i exp(ψ). `shift` keeps the move in the world frame (rotation vector,
+    translation) for `propagate`."""
     for i in range(n):
         H = mat6(0.0)
         b = vec6(0.0)
@@ -162,15 +182,11 @@ def correct(n: ti.i32, nb_loop: ti.template(), best_H: ti.template(), best_b: ti
         moved = vec6(0.0)
         done = 0
         if m >= min_inliers:
-            step = damped_step(H, b, GN_DAMPING)
-            w = vec3(step[0], step[1], step[2])
-            v = vec3(step[3], step[4], step[5])
-            scale = ti.min(ti.min(1.0, max_rot_rad / ti.max(w.norm(), 1e-12)),
-                           max_trans_m / ti.max(v.norm(), 1e-12))
-            q_old, t_old = q_cur[i], t_cur[i]
-            q_cur[i], t_cur[i] = pose_retract(q_old, t_old, w * scale, v * scale)
-            w_world = quat_rotate(q_old, w * scale)
-            dt_world = t_cur[i] - t_old
+            t_old = t_cur[i]
+            q_new, t_new, w_world = clamped_step(q_cur[i], t_old, H, b, max_rot_rad,
+                                                 max_trans_m)
+            q_cur[i], t_cur[i] = q_new, t_new
+            dt_world = t_new - t_old
             moved = vec6(w_world[0], w_world[1], w_world[2], dt_world[0], dt_world[1],
                          dt_world[2])
             done = 1
@@ -179,36 +195,100 @@ def correct(n: ti.i32, nb_loop: ti.template(), best_H: ti.template(), best_b: ti
 
 
 @ti.kernel
-def propagate(n: ti.i32, num_kf: ti.i32, kf: ti.types.ndarray(ndim=3), nb: ti.template(),
-              kf_travel: ti.types.ndarray(ndim=1), travel_now_m: ti.f32,
-              shift: ti.template(), corrected: ti.template(), fixed_travel: ti.template()):
-    """Eq. 8-10: keyframe k after the oldest neighbour o takes the fraction
-    α_k = d(o, k) / d(o, now) of the current pose's correction. Two deviations
-    (docs/slam.md): the fraction is of the correction as seen in the world (turn by α ω about
-    the keyframe's own position, move by α Δt), not of ψ in each keyframe's own frame, so a
-    keyframe facing another way moves the way the current pose moved; and the path starts at
-    the particle's previous correction when that is later than o, so re-driving an old loop
-    spreads only the drift since then instead of bending the whole loop again each scan."""
-    for i, k in ti.ndrange(n, num_kf):
-        if corrected[i] == 1:
-            base = 3.0e38
-            for j in ti.static(range(NEIGHBOURS)):
-                if nb[i, j] >= 0:
-                    base = ti.min(base, kf_travel[nb[i, j]])
-            base = ti.max(base, fixed_travel[i])
-            span = travel_now_m - base
-            if kf_travel[k] > base and span > 0.0:
-                alpha = ti.min((kf_travel[k] - base) / span, 1.0)
-                s = shift[i]
-                q_kf, t_kf = load_keyframe(kf, i, k)
-                dq = quat_exp(alpha * vec3(s[0], s[1], s[2]))
-                store_keyframe(kf, i, k, quat_normalize(quat_mul(dq, q_kf)),
-                               t_kf + alpha * vec3(s[3], s[4], s[5]))
+def refine(n: ti.i32, nb: ti.template(), nb_loop: ti.template(), best_H: ti.template(),
+           best_b: ti.template(), best_n: ti.template(), min_inliers: ti.i32,
+           prior_info: mat6, max_rot_rad: ti.f32, max_trans_m: ti.f32, q_cur: ti.template(),
+           t_cur: ti.template()) -> ti.i32:
+    """The gradient-guided update without a loop (docs/slam.md): a particle with no loop
+    neighbour takes one Gauss-Newton step on the GICP cost against all its neighbours (its
+    own newest keyframes) plus the prediction's prior, ψ = -(H + Σ⁻¹)⁻¹ b with
+    `prior_info` = Σ⁻¹, so the prediction noise does not pile up along directions the scan
+    pins down, while directions it leaves open (a turn that sees few trees) keep their
+    spread. Nothing is propagated. Uses the terms the likelihood just linearized. Returns
+    how many particles moved."""
+    moved = 0
+    for i in range(n):
+        H = prior_info
+        b = vec6(0.0)
+        m = 0
+        loop = 0
+        for j in ti.static(range(NEIGHBOURS)):
+            g = i * NEIGHBOURS + j
+            loop |= nb_loop[i, j]
+            if nb[i, j] >= 0 and best_n[g] > 0:
+                H += best_H[g]
+                b += best_b[g]
+                m += best_n[g]
+        if loop == 0 and m >= min_inliers:
+            q_new, t_new, _ = clamped_step(q_cur[i], t_cur[i], H, b, max_rot_rad, max_trans_m)
+            q_cur[i], t_cur[i] = q_new, t_new
+            moved += 1
+    return moved
+
+
+@ti.func
+def path_fraction(rows: ti.types.ndarray(ndim=2), k: ti.i32, base: vec5, span_w: ti.f32,
+                  span_v: ti.f32):
+    """(A, C, B) of keyframe k: its share A of the rotational drift variance and B of the
+    translational one accumulated since `base`, and C the position-weighted rotational share
+    (Σ w_j p_j / span)."""
+    a = ti.min(ti.max((rows[k, 0] - base[0]) / span_w, 0.0), 1.0)
+    c = vec3(rows[k, 1] - base[1], rows[k, 2] - base[2], rows[k, 3] - base[3]) / span_w
+    b = ti.min(ti.max((rows[k, 4] - base[4]) / span_v, 0.0), 1.0)
+    return a, c, b
 
 
 @ti.kernel
-def mark_fixed(n: ti.i32, travel_now_m: ti.f32, corrected: ti.template(), shift: ti.template(),
-               settled_rad: ti.f32, settled_m: ti.f32, fixed_travel: ti.template()):
+def propagate(n: ti.i32, num_kf: ti.i32, kf: ti.types.ndarray(ndim=3), nb: ti.template(),
+              kf_travel: ti.types.ndarray(ndim=1), kf_drift: ti.types.ndarray(ndim=2),
+              drift_now: vec5, odo_now: vec3, shift: ti.template(), corrected: ti.template(),
+              fixed_travel: ti.template(), fixed_drift: ti.template()):
+    """Eq. 8-10 with the odometry's drift model in place of travelled distance: the path
+    from the base (the oldest neighbour o, or the particle's last settled correction when
+    later) to now takes the current pose's correction (ω, Δt), seen in the world, in the
+    proportion in which the prediction's variance accumulated along it.
+
+    `kf_drift[k]` holds, at keyframe k's scan, the cumulative rotational variance W, the
+    cumulative Σ w_j p_j (p_j the odometry's position), the cumulative translational
+    variance V and the keyframe's odometry position; `drift_now` the same sums now. Keyframe
+    k turns by A_k ω about its own position and moves by ω × (A_k p_k − C_k) (the rotation
+    applied where it accumulated, with its lever arm) plus B_k of the translation the
+    rotation does not explain, Δt − ω × (p_now − C_now). For variance spread evenly
+    along a straight path this is eq. 8-10 (with the world-frame reading of docs/slam.md);
+    where the odometry was weak (a turn that sees few trees) the path bends there."""
+    for i, k in ti.ndrange(n, num_kf):
+        if corrected[i] == 1:
+            base_travel = 3.0e38
+            base = vec5(0.0)
+            for j in ti.static(range(NEIGHBOURS)):
+                o = nb[i, j]
+                if o >= 0 and kf_travel[o] < base_travel:
+                    base_travel = kf_travel[o]
+                    base = vec5(kf_drift[o, 0], kf_drift[o, 1], kf_drift[o, 2], kf_drift[o, 3],
+                                kf_drift[o, 4])
+            if fixed_travel[i] > base_travel:
+                base_travel = fixed_travel[i]
+                base = fixed_drift[i]
+            span_w = drift_now[0] - base[0]
+            span_v = drift_now[4] - base[4]
+            if kf_travel[k] > base_travel and span_w > 0.0 and span_v > 0.0:
+                s = shift[i]
+                w = vec3(s[0], s[1], s[2])
+                a, c, b = path_fraction(kf_drift, k, base, span_w, span_v)
+                c_now = vec3(drift_now[1] - base[1], drift_now[2] - base[2],
+                             drift_now[3] - base[3]) / span_w
+                p_k = vec3(kf_drift[k, 5], kf_drift[k, 6], kf_drift[k, 7])
+                rest = vec3(s[3], s[4], s[5]) - w.cross(odo_now - c_now)
+                q_kf, t_kf = load_keyframe(kf, i, k)
+                dq = quat_exp(a * w)
+                store_keyframe(kf, i, k, quat_normalize(quat_mul(dq, q_kf)),
+                               t_kf + w.cross(a * p_k - c) + b * rest)
+
+
+@ti.kernel
+def mark_fixed(n: ti.i32, travel_now_m: ti.f32, drift_now: vec5, corrected: ti.template(),
+               shift: ti.template(), settled_rad: ti.f32, settled_m: ti.f32,
+               fixed_travel: ti.template(), fixed_drift: ti.template()):
     """A correction this small means the particle sits on the loop (it is re-driving it):
     later corrections spread from here. A larger one (the first steps of a closure, a
     step cut by the trust region) leaves the start where it was, so the rest of the
@@ -219,6 +299,7 @@ def mark_fixed(n: ti.i32, travel_now_m: ti.f32, corrected: ti.template(), shift:
                  and vec3(s[3], s[4], s[5]).norm() <= settled_m)
         if corrected[i] == 1 and small:
             fixed_travel[i] = travel_now_m
+            fixed_drift[i] = drift_now
 
 
 @ti.kernel
@@ -265,7 +346,8 @@ def copy_keyframes(n: ti.i32, num_kf: ti.i32, src: ti.types.ndarray(ndim=3),
 @ti.kernel
 def respawn(m: ti.i32, dead: ti.types.ndarray(ndim=1), source: ti.types.ndarray(ndim=1),
             num_kf: ti.i32, q_cur: ti.template(), t_cur: ti.template(),
-            fixed_travel: ti.template(), kf: ti.types.ndarray(ndim=3)):
+            fixed_travel: ti.template(), fixed_drift: ti.template(),
+            kf: ti.types.ndarray(ndim=3)):
     """Dead particle dead[r] becomes a copy of living particle source[r] (current pose,
     last correction, every keyframe pose). Sources are never among the dead, so copies
     cannot race."""
@@ -276,6 +358,7 @@ def respawn(m: ti.i32, dead: ti.types.ndarray(ndim=1), source: ti.types.ndarray(
             q_cur[d] = q_cur[s]
             t_cur[d] = t_cur[s]
             fixed_travel[d] = fixed_travel[s]
+            fixed_drift[d] = fixed_drift[s]
         else:
             for a in ti.static(range(6)):
                 kf[d, k, a] = kf[s, k, a]

@@ -8,10 +8,13 @@ Per scan:
    on the IMU's vertical motion when the log has an IMU; in the elevator the scan only sees
    the moving cab, so it neither weighs particles nor becomes a keyframe;
 3. correction: each particle picks its 3 nearest keyframes in its own map; particles with a
-   loop among them (a keyframe more than `loop_min_travel_m` of travel ago) take a
-   Gauss-Newton step on the GICP cost against the loop keyframes (eq. 5-7), spread over
-   their keyframes since the oldest neighbour by travelled distance (eq. 8-10);
+   loop among them (a keyframe more than `loop_min_travel_m` of travel ago, facing within
+   half the field of view) take a Gauss-Newton step on the GICP cost against the loop
+   keyframes (eq. 5-7), spread over their keyframes since the oldest neighbour in
+   proportion to the odometry's drift variance along the path (eq. 8-10 weigh by distance);
 4. weighting: the GICP log-likelihood against the 3 neighbours, accumulated (eq. 2-3, 11);
+   particles without a loop then take one Gauss-Newton step toward their neighbours with
+   the prediction as prior, so the noise does not pile up where the scan pins the pose;
 5. keyframes: the scan becomes a keyframe for every particle when its voxel overlap with the
    last keyframe (under the odometry motion) falls below `keyframe_overlap`;
 6. pruning: particles with a negligible posterior or frame likelihood are replaced by copies
@@ -33,10 +36,10 @@ from mcl3d.config import Section
 from mcl3d.errors import ConfigError
 from mcl3d.geometry import quat_to_rot, rotation_angle, se3, se3_inverse, se3_log, transform_points
 from mcl3d.odometry import LOST_COVARIANCE, Odometry, OdometryConfig
-from mcl3d.preprocess import deskew, estimate_covariances, voxel_downsample
+from mcl3d.preprocess import ScanGrid, deskew, estimate_covariances, voxel_downsample
 
-STAGES = ("odometry", "preprocess", "predict", "correct", "weigh", "keyframe", "prune",
-          "estimate")
+STAGES = ("odometry", "preprocess", "predict", "correct", "weigh", "refine", "keyframe",
+          "prune", "estimate")
 
 
 class SlamConfig(Section):
@@ -65,20 +68,24 @@ class SlamConfig(Section):
                              "scan (the next row of trees, seen from behind) pulls the wrong way")
     max_correction_m: float = Field(1.0, gt=0, description="trust region of one step (m)")
     max_correction_deg: float = Field(5.0, gt=0, description="trust region of one step (deg)")
+    refine_without_loop: bool = Field(True, description="particles without a loop take one "
+                                      "Gauss-Newton step toward their own newest keyframes "
+                                      "per scan, the prediction noise as prior (not in the "
+                                      "paper; see docs/slam.md)")
     settled_correction_m: float = Field(0.02, ge=0, description="a step this small means the "
                                         "particle is on the loop: later steps spread from here "
                                         "instead of from the oldest neighbour (m)")
     settled_correction_deg: float = Field(0.2, ge=0, description="the same for rotation (deg)")
-    odometry_noise_scale: float = Field(0.5, ge=0, description="× the odometry covariance "
-                                        "(its inverse Hessian overstates per-scan error)")
+    odometry_noise_scale: float = Field(0.25, ge=0, description="× the odometry's σ (its "
+                                        "inverse Hessian overstates the per-scan error)")
     noise_trans_per_m: float = Field(0.01, ge=0, description="translation σ per metre moved")
     noise_rot_deg_per_m: float = Field(0.05, ge=0, description="rotation σ (deg) per metre")
     noise_rot_per_rad: float = Field(0.01, ge=0, description="rotation σ per radian turned")
     noise_trans_min_m: float = Field(0.001, ge=0, description="translation σ floor per scan")
     noise_rot_min_deg: float = Field(0.01, ge=0, description="rotation σ floor per scan (deg)")
-    max_motion_sigma_m: float = Field(0.005, gt=0, description="cap on the translation σ per scan "
-                                      "(degenerate or lost registration) (m)")
-    max_motion_sigma_deg: float = Field(0.05, gt=0, description="the same for rotation (deg)")
+    max_motion_sigma_m: float = Field(0.0025, gt=0, description="cap on the translation σ per "
+                                      "scan (degenerate or lost registration) (m)")
+    max_motion_sigma_deg: float = Field(0.025, gt=0, description="the same for rotation (deg)")
     points_weight: float = Field(30.0, gt=0, description="independent points a scan is worth "
                                  "in the likelihood (tempering; see docs/slam.md)")
     outlier_cost: float = Field(0.0, ge=0, description="cost of a scan point with no voxel "
@@ -91,7 +98,7 @@ class SlamConfig(Section):
                                            "the median range is below this (0: off)")
     elevator_sigma_z_m: float = Field(0.25, ge=0, description="vertical random walk per scan "
                                       "while in the elevator, without IMU (m)")
-    elevator_imu_sigma_z_m: float = Field(0.02, ge=0, description="the same around the IMU's "
+    elevator_imu_sigma_z_m: float = Field(0.01, ge=0, description="the same around the IMU's "
                                           "vertical motion (m)")
     neighbour_max_dz_m: float = Field(2.0, gt=0, description="keyframes more than this above "
                                       "or below a particle are not its neighbours (another "
@@ -256,10 +263,12 @@ class MonteCarloSlam:
 
     def __init__(self, config: SlamConfig | None = None,
                  T_lidar_imu: np.ndarray | None = None):
+        import taichi as ti
+
         from mcl3d.batch_gicp import BatchGicp
         from mcl3d.gaussian_voxels import GaussianVoxelMaps
         from mcl3d.kernels.slam import NEIGHBOURS
-        from mcl3d.slam_particles import SlamParticles
+        from mcl3d.slam_particles import DRIFT_SUMS, SlamParticles
 
         self.cfg = cfg = config or SlamConfig()
         if cfg.keyframe_voxel_m < cfg.scan_voxel_m:
@@ -272,10 +281,16 @@ class MonteCarloSlam:
         self.gicp = BatchGicp(self.maps, max_groups=groups, max_rows=groups,
                               max_source_points=cfg.correction_points)
         self.particles = SlamParticles(cfg.particles, cfg.max_keyframes, self.gicp, cfg.seed)
+        self.grid = ScanGrid(max_voxels=cfg.odometry.max_points)
+        self._grid_pts = ti.Vector.field(3, ti.f32, cfg.odometry.max_points)
+        self._grid_rows = ti.Vector.field(6, ti.f32, cfg.odometry.max_points)
         self.frames: list[SlamFrame] = []
         self.keyframe_clouds: list[np.ndarray] = []  # lidar frame, scan_voxel_m
         self.keyframe_frames: list[int] = []  # frame index of every keyframe
         self.travel_m = 0.0
+        # the prediction's variance summed along the path: rotational W, Σ w_j p_j (p_j the
+        # odometry's position), translational V; loop corrections are spread by them
+        self.drift = np.zeros(DRIFT_SUMS)
         self._rep = 0
         self._last_keys = np.zeros(0, np.int64)  # overlap voxels of the last keyframe
         self._ride: ElevatorRide | None = None
@@ -302,23 +317,29 @@ class MonteCarloSlam:
         watch.lap("preprocess")
         step = len(self.frames)
         self.travel_m += float(np.linalg.norm(odo.T_prev_curr[:3, 3]))
+        T_odom = self._with_offset(odo.T_world_lidar)
         p = self.particles
         looping = corrected = 0
         if not first:
-            p.predict(odo.T_prev_curr, motion_covariance(cfg, odo.T_prev_curr, odo.covariance),
-                      2 * step)
+            cov = motion_covariance(cfg, odo.T_prev_curr, odo.covariance)
+            w = float(np.trace(cov[:3, :3]))
+            self.drift += np.r_[w, w * T_odom[:3, 3], np.trace(cov[3:, 3:])]
+            p.predict(odo.T_prev_curr, cov, 2 * step)
             if lift is not None:
                 p.shift_vertical(*lift, 2 * step + 1)
+                self.drift[4] += lift[2] ** 2  # the elevator's random walk
         watch.lap("predict")
         src_pts, src_covs = thin(down, covs, cfg.correction_points)
         can_score = (p.num_keyframes > 0 and len(src_pts) >= cfg.min_inliers
                      and not elevator)
         if can_score:
             self.gicp.set_source(src_pts, src_covs)
-            gate = (self.travel_m, cfg.loop_min_travel_m, self._up(), cfg.neighbour_max_dz_m)
+            gate = (self.travel_m, cfg.loop_min_travel_m, self._up(), cfg.neighbour_max_dz_m,
+                    np.deg2rad(cfg.fov_deg / 2))
             looping = p.select_neighbours(*gate)
             for _ in range(cfg.gn_iterations if looping else 0):
-                corrected = p.correct(self.travel_m, len(src_pts), cfg.min_inliers,
+                corrected = p.correct(self.travel_m, self.drift, T_odom[:3, 3], len(src_pts),
+                                      cfg.min_inliers,
                                       np.deg2rad(cfg.max_correction_deg), cfg.max_correction_m,
                                       np.deg2rad(cfg.settled_correction_deg),
                                       cfg.settled_correction_m)
@@ -327,10 +348,13 @@ class MonteCarloSlam:
         if can_score:
             p.weigh(len(src_pts), cfg.outlier_cost, cfg.points_weight)
         watch.lap("weigh")
-        T_odom = self._with_offset(odo.T_world_lidar)
+        if can_score and cfg.refine_without_loop and not first:
+            p.refine(cov, cfg.min_inliers, np.deg2rad(cfg.max_correction_deg),
+                     cfg.max_correction_m)
+        watch.lap("refine")
         keyframe = not elevator and self._keyframe_due(down, T_odom)
         if keyframe:
-            self._add_keyframe(down, covs)
+            self._add_keyframe(down, covs, T_odom[:3, 3])
         watch.lap("keyframe")
         pruned, post = self._prune(step, can_score)
         watch.lap("prune")
@@ -386,14 +410,29 @@ class MonteCarloSlam:
         return shift * up, up, sigma
 
     def _preprocess(self, points, times, odo, first: bool) -> tuple[np.ndarray, np.ndarray]:
-        """Deskewed to the stamp with the odometry's motion, downsampled, covariances."""
-        cfg = self.cfg
+        """Deskewed to the stamp with the odometry's motion, downsampled, covariances: on
+        the device (ScanGrid, as the odometry does), on the host when the scan has more
+        voxels than the grid holds or the odometry asks for more neighbours than it finds."""
+        from mcl3d.kernels.scan_grid import MAX_K
+        from mcl3d.preprocess import download_rows, plane_rows_to_covs
+
+        cfg, oc = self.cfg, self.cfg.odometry
+        twist = None
         if times is not None and not first and len(points) and self.frames:
             dt = (odo.stamp_ns - self.frames[-1].stamp_ns) * 1e-9
             if dt > 0:
-                points = deskew(points, times, se3_log(odo.T_prev_curr) / dt)
+                twist = se3_log(odo.T_prev_curr) / dt
+        if oc.k_neighbors <= MAX_K:
+            n = self.grid.downsample(points, cfg.scan_voxel_m, self._grid_pts,
+                                     None if twist is None else times, twist, oc.min_range_m,
+                                     oc.max_range_m)
+            if n is not None:
+                self.grid.covariances(self._grid_pts, self._grid_rows, oc.k_neighbors)
+                down, rows = download_rows(self._grid_pts, self._grid_rows, n)
+                return down, plane_rows_to_covs(rows)
+        if twist is not None:
+            points = deskew(points, times, twist)
         r = np.linalg.norm(points, axis=1)
-        oc = cfg.odometry
         points = points[(r >= oc.min_range_m) & (r <= oc.max_range_m)]
         down = voxel_downsample(points, cfg.scan_voxel_m) if len(points) else points
         return down, estimate_covariances(down, oc.k_neighbors)
@@ -409,8 +448,9 @@ class MonteCarloSlam:
         overlap = float(np.isin(keys, self._last_keys).mean())
         return overlap < self.cfg.keyframe_overlap
 
-    def _add_keyframe(self, down: np.ndarray, covs: np.ndarray) -> None:
-        k = self.particles.add_keyframe(self.travel_m)
+    def _add_keyframe(self, down: np.ndarray, covs: np.ndarray, odom_position: np.ndarray
+                      ) -> None:
+        k = self.particles.add_keyframe(self.travel_m, self.drift, odom_position)
         pts, cv = thin(down, covs, self.cfg.keyframe_points)
         self.maps.clear(k, self.cfg.keyframe_voxel_m)
         self.maps.insert(k, pts, cv)

@@ -14,6 +14,7 @@ from mcl3d.errors import ConfigError
 from mcl3d.geometry import quat_to_rot, rot_to_quat, se3
 
 KEYFRAME_STEP = 8  # keyframe capacity grows in steps of this many
+DRIFT_SUMS = 5  # W, Σ w p (3), V: see SlamParticles.correct
 BYTES_PER_KEYFRAME_POSE = 24  # translation + quaternion vector part, f32
 
 
@@ -47,8 +48,10 @@ class SlamParticles:
         self.shift = ti.Vector.field(6, ti.f32, n)
         self.corrected = ti.field(ti.i32, n)
         self.fixed_travel = ti.field(ti.f32, n)  # travel (m) at the particle's last correction
+        self.fixed_drift = ti.Vector.field(DRIFT_SUMS, ti.f32, n)  # drift sums there
         self.kf = ti.ndarray(ti.f32, (n, KEYFRAME_STEP, 6))
         self.kf_travel = ti.ndarray(ti.f32, max_keyframes)
+        self.kf_drift = ti.ndarray(ti.f32, (max_keyframes, DRIFT_SUMS + 3))
         self.num_keyframes = 0
         self.q_cur.from_numpy(np.tile(np.array([0.0, 0.0, 0.0, 1.0], np.float32), (n, 1)))
 
@@ -60,7 +63,8 @@ class SlamParticles:
 
     def state_bytes(self) -> int:
         """Bytes of particle state: keyframe poses as allocated, current poses, weights."""
-        per_particle = 28 + 8 + 2 * 4 * 3 + 24 + 8  # pose, weights, neighbours, shift, flags
+        per_particle = 28 + 8 + 2 * 4 * 3 + 24 + 8 + 4 * DRIFT_SUMS  # pose, weights,
+        # neighbours, shift, flags, drift sums at the last settled correction
         return self.n * (self.keyframe_capacity * BYTES_PER_KEYFRAME_POSE + per_particle)
 
     def _reserve(self, num_keyframes: int) -> None:
@@ -92,8 +96,11 @@ class SlamParticles:
         slam.shift_vertical(self.n, np.asarray(shift, np.float32), np.asarray(up, np.float32),
                             sigma_m, self.seed, step, self.t_cur)
 
-    def add_keyframe(self, travel_m: float) -> int:
-        """Every particle's current pose becomes the pose of a new keyframe; returns its id."""
+    def add_keyframe(self, travel_m: float, drift: np.ndarray, odom_position: np.ndarray
+                     ) -> int:
+        """Every particle's current pose becomes the pose of a new keyframe; returns its id.
+        `drift` are the odometry's drift sums at this scan (see `correct`), `odom_position`
+        its position."""
         from mcl3d.kernels import slam
 
         k = self.num_keyframes
@@ -103,18 +110,23 @@ class SlamParticles:
         self._reserve(k + 1)
         slam.insert_keyframe(self.n, k, self.q_cur, self.t_cur, self.kf)
         self.kf_travel[k] = travel_m
+        for a, v in enumerate(np.r_[drift, odom_position]):
+            self.kf_drift[k, a] = float(v)
         self.num_keyframes = k + 1
         return k
 
     def select_neighbours(self, travel_m: float, loop_min_travel_m: float,
-                          up: np.ndarray | None = None, max_dz_m: float = np.inf) -> int:
+                          up: np.ndarray | None = None, max_dz_m: float = np.inf,
+                          max_facing_rad: float = np.pi) -> int:
         """Neighbour keyframes of every particle (none more than `max_dz_m` along `up`);
-        returns how many particles see a loop."""
+        returns how many particles see a loop (a keyframe facing more than `max_facing_rad`
+        away is a neighbour but not a loop)."""
         from mcl3d.kernels import slam
 
         up = np.array([0.0, 0.0, 1.0]) if up is None else up
-        return int(slam.select_neighbours(self.n, self.num_keyframes, self.kf, self.t_cur,
-                                          self.kf_travel, travel_m, loop_min_travel_m,
+        return int(slam.select_neighbours(self.n, self.num_keyframes, self.kf, self.q_cur,
+                                          self.t_cur, self.kf_travel, travel_m,
+                                          loop_min_travel_m, float(np.cos(max_facing_rad)),
                                           np.asarray(up, np.float32), min(max_dz_m, 3e38),
                                           self.nb, self.nb_loop))
 
@@ -131,10 +143,15 @@ class SlamParticles:
         g.start(groups, groups, num_src, one_row_per_group=True)
         g.iterate(use_lm=False, chunk=num_src)  # whole rows: no atomics, reproducible
 
-    def correct(self, travel_m: float, num_src: int, min_inliers: int, max_rot_rad: float,
-                max_trans_m: float, settled_rad: float, settled_m: float) -> int:
+    def correct(self, travel_m: float, drift: np.ndarray, odom_position: np.ndarray,
+                num_src: int, min_inliers: int, max_rot_rad: float, max_trans_m: float,
+                settled_rad: float, settled_m: float) -> int:
         """One gradient-guided update of the looping particles and their keyframes (eq. 5-10);
-        returns how many particles moved."""
+        returns how many particles moved. `drift` are the odometry's drift sums now (W: the
+        prediction's cumulative rotational variance, Σ w_j p_j, V: the translational one),
+        by which the correction is spread over the keyframes."""
+        import taichi as ti
+
         from mcl3d.kernels import slam
 
         g = self.gicp
@@ -142,10 +159,12 @@ class SlamParticles:
         slam.correct(self.n, self.nb_loop, g.best_H, g.best_b, g.best_n, min_inliers,
                      max_rot_rad, max_trans_m, self.q_cur, self.t_cur, self.shift,
                      self.corrected)
-        slam.propagate(self.n, self.num_keyframes, self.kf, self.nb, self.kf_travel, travel_m,
-                       self.shift, self.corrected, self.fixed_travel)
-        slam.mark_fixed(self.n, travel_m, self.corrected, self.shift, settled_rad, settled_m,
-                        self.fixed_travel)
+        d = ti.types.vector(DRIFT_SUMS, ti.f32)(*np.asarray(drift, np.float32))
+        slam.propagate(self.n, self.num_keyframes, self.kf, self.nb, self.kf_travel,
+                       self.kf_drift, d, ti.math.vec3(*np.asarray(odom_position, np.float32)),
+                       self.shift, self.corrected, self.fixed_travel, self.fixed_drift)
+        slam.mark_fixed(self.n, travel_m, d, self.corrected, self.shift, settled_rad, settled_m,
+                        self.fixed_travel, self.fixed_drift)
         return int(self.corrected.to_numpy().sum())
 
     def weigh(self, num_src: int, outlier_cost: float, points_weight: float) -> None:
@@ -157,6 +176,19 @@ class SlamParticles:
         slam.likelihood(self.n, num_src, self.nb, g.best_e, g.best_n, outlier_cost,
                         points_weight, self.frame_ll, self.log_w)
 
+    def refine(self, covariance: np.ndarray, min_inliers: int, max_rot_rad: float,
+               max_trans_m: float) -> int:
+        """One Gauss-Newton step of every particle without a loop toward its own neighbour
+        keyframes, from the terms `weigh` linearized, with the prediction's `covariance` as
+        the prior; returns how many moved."""
+        from mcl3d.kernels import slam
+
+        g = self.gicp
+        info = np.linalg.inv(covariance + 1e-12 * np.eye(6)).astype(np.float32)
+        return int(slam.refine(self.n, self.nb, self.nb_loop, g.best_H, g.best_b, g.best_n,
+                               min_inliers, info, max_rot_rad, max_trans_m, self.q_cur,
+                               self.t_cur))
+
     def respawn(self, dead: np.ndarray, source: np.ndarray, log_w: np.ndarray) -> None:
         """Replace particles `dead` by copies of `source` and upload the new log weights."""
         from mcl3d.kernels import slam
@@ -164,7 +196,7 @@ class SlamParticles:
         if len(dead):
             slam.respawn(len(dead), np.ascontiguousarray(dead, np.int32),
                          np.ascontiguousarray(source, np.int32), self.num_keyframes,
-                         self.q_cur, self.t_cur, self.fixed_travel, self.kf)
+                         self.q_cur, self.t_cur, self.fixed_travel, self.fixed_drift, self.kf)
         self.log_w.from_numpy(np.ascontiguousarray(log_w, np.float32))
 
     # ---- read back ----

@@ -52,11 +52,16 @@ def test_loop_closure_pulls_the_current_pose_and_bends_the_keyframes(ti_runtime)
     src = src[np.linspace(0, len(src) - 1, 512).astype(int)]
     gicp = BatchGicp(maps, max_groups=3, max_rows=3, max_source_points=512)
     gicp.set_source(src, estimate_covariances(src, 10))
+    # the odometry's drift sums (W, Σ w p, V), variance growing evenly with travel
+    path = np.r_[travel, 24.0]
+    pos = np.r_[est_kf[:, :3, 3], est_cur[None, :3, 3]]
+    w = np.diff(path, prepend=0.0) * 1e-5
+    drift = np.c_[np.cumsum(w), np.cumsum(w[:, None] * pos, axis=0), 10 * np.cumsum(w)]
     p = SlamParticles(1, 8, gicp, seed=0)
     for k in range(len(true_kf)):
         p.q_cur.from_numpy(geometry.rot_to_quat(est_kf[k:k + 1, :3, :3]).astype(np.float32))
         p.t_cur.from_numpy(est_kf[k:k + 1, :3, 3].astype(np.float32))
-        p.add_keyframe(float(travel[k]))
+        p.add_keyframe(float(travel[k]), drift[k], est_kf[k, :3, 3])
     p.q_cur.from_numpy(geometry.rot_to_quat(est_cur[None, :3, :3]).astype(np.float32))
     p.t_cur.from_numpy(est_cur[None, :3, 3].astype(np.float32))
 
@@ -64,7 +69,8 @@ def test_loop_closure_pulls_the_current_pose_and_bends_the_keyframes(ti_runtime)
     nb = p.nb.to_numpy()[0]
     assert 0 in nb
     for _ in range(4):
-        p.correct(24.0, len(src), 30, np.deg2rad(5.0), 1.0, np.deg2rad(0.2), 0.02)
+        p.correct(24.0, drift[-1], est_cur[:3, 3], len(src), 30, np.deg2rad(5.0), 1.0,
+                  np.deg2rad(0.2), 0.02)
         p.select_neighbours(24.0, 10.0)
     cur = p.current_poses()[0]
     before = np.linalg.norm(est_cur[:3, 3] - true_cur[:3, 3])
