@@ -113,6 +113,28 @@ def test_select_neighbours_matches_numpy(ti_runtime):
     assert nb.to_numpy()[0, 0] == 2 and nb.to_numpy()[0, 1] == 5
 
 
+def random_gn_terms(rng, groups: int) -> tuple[np.ndarray, np.ndarray]:
+    """Well-conditioned GICP Hessians (SPD) and gradients, one per neighbour group."""
+    Hs = np.zeros((groups, 6, 6))
+    for g in range(groups):
+        A = rng.normal(size=(6, 6))
+        Hs[g] = A @ A.T + 6 * np.eye(6)
+    return Hs, rng.normal(size=(groups, 6)) * 0.5
+
+
+def gn_fields(Hs: np.ndarray, bs: np.ndarray, counts: np.ndarray):
+    """The per-group H, b and inlier counts as the kernels read them (BatchGicp's best_*)."""
+    import taichi as ti
+
+    H = ti.Matrix.field(6, 6, ti.f32, len(Hs))
+    b = ti.Vector.field(6, ti.f32, len(bs))
+    cnt = ti.field(ti.i32, len(counts))
+    H.from_numpy(Hs.astype(np.float32))
+    b.from_numpy(bs.astype(np.float32))
+    cnt.from_numpy(counts.astype(np.int32))
+    return H, b, cnt
+
+
 def test_correct_takes_the_clamped_gauss_newton_step(ti_runtime):
     import taichi as ti
 
@@ -122,22 +144,13 @@ def test_correct_takes_the_clamped_gauss_newton_step(ti_runtime):
     n = 4
     cur = random_poses(rng, n)
     q, t = pose_fields(cur)
-    H = ti.Matrix.field(6, 6, ti.f32, 3 * n)
-    b = ti.Vector.field(6, ti.f32, 3 * n)
-    cnt = ti.field(ti.i32, 3 * n)
-    nb_loop = ti.field(ti.i32, (n, 3))
-    Hs = np.zeros((3 * n, 6, 6))
-    for g in range(3 * n):
-        A = rng.normal(size=(6, 6))
-        Hs[g] = A @ A.T + 6 * np.eye(6)
-    bs = rng.normal(size=(3 * n, 6)) * 0.5
+    Hs, bs = random_gn_terms(rng, 3 * n)
     bs[9:] *= 100.0  # particle 3: a step beyond the trust region
     counts = np.full(3 * n, 40)
     counts[3:6] = [10, 0, 5]  # particle 1: too few inliers
     loops = np.array([[1, 0, 1], [1, 1, 1], [0, 0, 0], [1, 1, 0]])
-    H.from_numpy(Hs.astype(np.float32))
-    b.from_numpy(bs.astype(np.float32))
-    cnt.from_numpy(counts.astype(np.int32))
+    H, b, cnt = gn_fields(Hs, bs, counts)
+    nb_loop = ti.field(ti.i32, (n, 3))
     nb_loop.from_numpy(loops.astype(np.int32))
     shift = ti.Vector.field(6, ti.f32, n)
     corrected = ti.field(ti.i32, n)
@@ -168,23 +181,14 @@ def test_refine_steps_particles_without_a_loop_on_all_their_neighbours(ti_runtim
     n = 4
     cur = random_poses(rng, n)
     q, t = pose_fields(cur)
-    H = ti.Matrix.field(6, 6, ti.f32, 3 * n)
-    b = ti.Vector.field(6, ti.f32, 3 * n)
-    cnt = ti.field(ti.i32, 3 * n)
-    nb = ti.field(ti.i32, (n, 3))
-    nb_loop = ti.field(ti.i32, (n, 3))
-    Hs = np.zeros((3 * n, 6, 6))
-    for g in range(3 * n):
-        A = rng.normal(size=(6, 6))
-        Hs[g] = A @ A.T + 6 * np.eye(6)
-    bs = rng.normal(size=(3 * n, 6)) * 0.5
+    Hs, bs = random_gn_terms(rng, 3 * n)
     counts = np.full(3 * n, 40)
     counts[6:9] = [10, 0, 5]  # particle 2: too few inliers
     nbs = np.array([[0, 1, -1], [2, 3, 4], [0, 1, 2], [5, 6, 7]])
     loops = np.array([[0, 0, 0], [0, 1, 0], [0, 0, 0], [0, 0, 0]])  # particle 1: a loop
-    H.from_numpy(Hs.astype(np.float32))
-    b.from_numpy(bs.astype(np.float32))
-    cnt.from_numpy(counts.astype(np.int32))
+    H, b, cnt = gn_fields(Hs, bs, counts)
+    nb = ti.field(ti.i32, (n, 3))
+    nb_loop = ti.field(ti.i32, (n, 3))
     nb.from_numpy(nbs.astype(np.int32))
     nb_loop.from_numpy(loops.astype(np.int32))
     prior = np.diag([1e4] * 3 + [1e2] * 3)  # (0.6°)^-2, (10 cm)^-2

@@ -135,6 +135,28 @@ def hall():
     return localize_world.build_map(0.1, mesh), mesh
 
 
+def search_two_modes(tsdf, scanner, path, mirror, n_true, true_offset_m, true_yaw, spread_m,
+                     spread_rad, resample, rng):
+    """A global search of 6000 particles along `path`: n_true near the truth (shifted by
+    true_offset_m, at yaw true_yaw), the rest on the `mirror` pose; the results per scan."""
+    from mcl3d.localizer import Localizer, LocalizerConfig
+
+    n = 6000
+    true = np.arange(n) < n_true
+    centre = np.where(true[:, None], path[0][:3, 3] + true_offset_m, mirror[:3, 3])
+    yaw = np.where(true, true_yaw, np.pi) + rng.normal(0, spread_rad, n)
+    positions = centre + rng.normal(0, spread_m, (n, 3))
+    quats = geometry.rot_to_quat(geometry.so3_exp(np.column_stack([0 * yaw, 0 * yaw, yaw])))
+    cfg = LocalizerConfig.model_validate({"particles": n, "seed": 3, "sensor": {
+        "max_range_m": 3.5, "min_range_m": 0.5}, "resample": resample,
+        "recovery": {"enabled": False}})
+    loc = Localizer(tsdf, cfg, imu_roll_pitch=(0.0, 0.0))
+    loc.init_particles(positions, quats, search=True)
+    motions = odometry(path, np.random.default_rng(1))
+    return [loc.step(scanner.scan(T), dT, 0.1 * k)
+            for k, (T, dT) in enumerate(zip(path, motions, strict=True))]
+
+
 @pytest.mark.parametrize("mode_share", [0.1, 0.0])
 def test_a_light_true_mode_survives_until_the_evidence_comes(hall, ti_runtime, mode_share):
     """The arena failure in small: a global search holds two modes, the true pose (2 % of
@@ -144,28 +166,15 @@ def test_a_light_true_mode_survives_until_the_evidence_comes(hall, ti_runtime, m
     floor keeps it, refuses to converge while both hold weight, and ends on the truth.
     Recovery is off: this is about the search. Plain resampling loses the true mode at this
     noise seed and at about half of the others tried (2 of 4); the floor kept it in 4 of 4."""
-    from mcl3d.localizer import Localizer, LocalizerConfig
-
     tsdf, mesh = hall
     scanner = localize_world.Scanner(n_azimuth=120, seed=4, mesh=mesh)  # same noise for both
     n_scans = 36  # the crate comes into range at about scan 18
     path = np.stack([geometry.se3(np.eye(3), [9.0 + 0.08 * k, 3.0, localize_world.LIDAR_Z_M])
                      for k in range(n_scans)])  # along +x towards the crate
     mirror = geometry.se3(geometry.rpy_to_rot(0, 0, np.pi), [16.0 - 9.0, 3.0, 0.8])
-    rng = np.random.default_rng(0)
-    n, n_true = 6000, 120
-    centre = np.where(np.arange(n)[:, None] < n_true, path[0][:3, 3], mirror[:3, 3])
-    yaw = np.where(np.arange(n) < n_true, 0.0, np.pi) + rng.normal(0, 0.05, n)
-    positions = centre + rng.normal(0, [0.15, 0.15, 0.03], (n, 3))
-    quats = geometry.rot_to_quat(geometry.so3_exp(np.column_stack([0 * yaw, 0 * yaw, yaw])))
-    cfg = LocalizerConfig.model_validate({"particles": n, "seed": 3, "sensor": {
-        "max_range_m": 3.5, "min_range_m": 0.5}, "resample": {"mode_share": mode_share},
-        "recovery": {"enabled": False}})
-    loc = Localizer(tsdf, cfg, imu_roll_pitch=(0.0, 0.0))
-    loc.init_particles(positions, quats, search=True)
-    motions = odometry(path, np.random.default_rng(1))
-    results = [loc.step(scanner.scan(T), dT, 0.1 * k)
-               for k, (T, dT) in enumerate(zip(path, motions, strict=True))]
+    results = search_two_modes(tsdf, scanner, path, mirror, 120, [0.0, 0.0, 0.0], 0.0,
+                               [0.15, 0.15, 0.03], 0.05, {"mode_share": mode_share},
+                               np.random.default_rng(0))
     d, a = errors(results[-1].T_map_lidar, path[-1])
     if mode_share == 0.0:
         assert d > 5.0, "without the mode floor the light true mode should have died"
@@ -184,29 +193,14 @@ def test_a_misaligned_true_mode_aligns_before_it_is_judged(hall, ti_runtime, gra
     Judged at once (grace 0) it drops below the rival weight, loses its floor and dies; the
     default grace keeps it while it aligns, and the filter ends on the truth (3 of 3 noise
     seeds tried each way)."""
-    from mcl3d.localizer import Localizer, LocalizerConfig
-
     tsdf, mesh = hall
     scanner = localize_world.Scanner(n_azimuth=120, seed=5, mesh=mesh)
     path = np.stack([geometry.se3(np.eye(3), [10.6 + 0.08 * k, 3.0, localize_world.LIDAR_Z_M])
                      for k in range(24)])  # the crate is in range from the start
     mirror = geometry.se3(geometry.rpy_to_rot(0, 0, np.pi), [16.0 - 10.6, 3.0, 0.8])
-    rng = np.random.default_rng(1)
-    n, n_true = 6000, 300
-    true = np.arange(n) < n_true
-    centre = np.where(true[:, None], path[0][:3, 3] + [0.4, 0.2, 0.0], mirror[:3, 3])
-    yaw = np.where(true, 0.1, np.pi) + rng.normal(0, 0.03, n)
-    positions = centre + rng.normal(0, [0.08, 0.08, 0.02], (n, 3))
-    quats = geometry.rot_to_quat(geometry.so3_exp(np.column_stack([0 * yaw, 0 * yaw, yaw])))
     resample = {} if grace_scans is None else {"mode_grace_scans": grace_scans}
-    cfg = LocalizerConfig.model_validate({"particles": n, "seed": 3, "sensor": {
-        "max_range_m": 3.5, "min_range_m": 0.5}, "resample": resample,
-        "recovery": {"enabled": False}})
-    loc = Localizer(tsdf, cfg, imu_roll_pitch=(0.0, 0.0))
-    loc.init_particles(positions, quats, search=True)
-    motions = odometry(path, np.random.default_rng(1))
-    results = [loc.step(scanner.scan(T), dT, 0.1 * k)
-               for k, (T, dT) in enumerate(zip(path, motions, strict=True))]
+    results = search_two_modes(tsdf, scanner, path, mirror, 300, [0.4, 0.2, 0.0], 0.1,
+                               [0.08, 0.08, 0.02], 0.03, resample, np.random.default_rng(1))
     d, a = errors(results[-1].T_map_lidar, path[-1])
     assert results[-1].state == "converged"
     if grace_scans == 0:
