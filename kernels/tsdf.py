@@ -549,16 +549,29 @@ def band_samples(m: ti.template(), behind_m: ti.f32) -> ti.i32:
 
 
 @ti.func
-def carve_ray(m: ti.template(), o: vec3, u: vec3, s_free: ti.f32):
-    """Free space along o + s u, s in [0, s_free): unallocated blocks become FREE as a whole,
-    voxels of allocated blocks count a hit each, sampled a voxel apart.
+def lowest_bit(i: ti.i32) -> ti.i32:
+    """The largest power of two dividing i (2^20 for i = 0, every stride divides it)."""
+    b = 1 << 20
+    if i > 0:
+        b = ti.min(i & -i, b)
+    return b
 
-    Runs of unallocated blocks are walked block to block by a 3D DDA (per-axis ray
-    parameters of the next block face, no divisions or floors per block); on reaching an
-    allocated block the ray resumes just past its face.
+
+@ti.func
+def carve_ray(m: ti.template(), a: vec3, u: vec3, length: ti.f32, stop_after: ti.f32):
+    """Free space along a + s u, s in [0, length): unallocated blocks become FREE as a
+    whole, voxels of allocated blocks count a hit each, sampled a voxel apart; past
+    stop_after the walk ends in the first unallocated block it meets.
+
+    scan_fuse walks each ray backwards, from where it comes within truncation of its
+    surface toward the sensor, so a ray that need not carve near the sensor still counts
+    the voxels of the surface blocks it passes first. Runs of unallocated blocks are walked
+    block to block by a 3D DDA (per-axis ray parameters of the next block face, no
+    divisions or floors per block); on reaching an allocated block the ray resumes just
+    past its face.
     """
     vox = m.voxel_size_m
-    g0 = world_to_grid(m, o)  # the ray in voxel units: g0 + s * ug
+    g0 = world_to_grid(m, a)  # the ray in voxel units: g0 + s * ug
     ug = u * (1.0 / vox)
     inv = vec3(0.0)  # ray parameter per voxel along each axis
     edge = ivec3(0)  # 1: leaves a block through its upper face, 0: its lower face
@@ -571,9 +584,10 @@ def carve_ray(m: ti.template(), o: vec3, u: vec3, s_free: ti.f32):
         elif u[k] < -1e-9:
             inv[k] = 1.0 / ug[k]
             step[k] = -1
+    end = length  # shortened where the walk stops early
     last = ivec3(-(1 << 30))
     s = 0.0
-    while s < s_free:
+    while s < end:
         g = ti.cast(ti.floor(g0 + s * ug), ti.i32)
         if not in_grid(m, g):
             s += BLOCK * vox
@@ -585,6 +599,8 @@ def carve_ray(m: ti.template(), o: vec3, u: vec3, s_free: ti.f32):
                     accumulate_free(m, b, g)
                     last = g
                 s += vox
+            elif s > stop_after:
+                end = s
             else:
                 face = ti.cast((bc + edge) * BLOCK, ti.f32)
                 t = vec3(_BIG)  # ray parameter of the block's exit face along each axis
@@ -603,7 +619,7 @@ def carve_ray(m: ti.template(), o: vec3, u: vec3, s_free: ti.f32):
                         axis = 2
                         s_exit = t[2]
                     s = ti.max(s_exit, s) + 1e-4
-                    if s >= s_free:
+                    if s >= end or s > stop_after:
                         break
                     for k in ti.static(range(3)):
                         if axis == k:
@@ -681,7 +697,12 @@ def scan_fuse(m: ti.template(), ray_p: ti.types.ndarray(dtype=vec4, ndim=1),
     surface plane, blocks that hold no surface become FREE as a whole (the ray jumps block
     to block) and voxels of allocated blocks count free-space hits; finalize_blocks uses
     them only for voxels no band reached (a ray passing a voxel says it is free, not how
-    far the surface is).
+    far the surface is). Near the sensor rays are far denser than voxels, so there only a
+    subset carves: ray i (in scan order) counts voxels from range s_dense / lowbit(i) on
+    (lowbit(i): the largest power of two dividing i) and walks unallocated blocks from 2x
+    that range on, where the rays that do are under one voxel, resp. two voxels apart
+    (the spacing of rays i, i + 2^k at range s is about 2^k * spacing_rad * s). Each ray
+    walks backwards, from its band toward the sensor, so its own surface blocks come first.
 
     Near rays are denser than voxels (a one-column band, footprint_steps = 0), so
     consecutive points of a scan line mostly hit the same voxels: one thread takes a run
@@ -694,6 +715,9 @@ def scan_fuse(m: ti.template(), ray_p: ti.types.ndarray(dtype=vec4, ndim=1),
     k_w = -0.5 / (sigma_weight_m * sigma_weight_m)
     n_max = ti.static(max_band_samples(m))
     n_s = band_samples(m, behind_m)
+    s_dense = 0.0  # neighbouring rays are half a voxel apart at this range
+    if spacing_rad > 0.0:
+        s_dense = 0.5 * m.voxel_size_m / spacing_rad
     for run in range((n + run_length - 1) // run_length):
         slot_g = ti.Matrix.zero(ti.i32, n_max, 3)
         slot_wd = ti.Vector.zero(ti.f32, n_max)
@@ -709,7 +733,11 @@ def scan_fuse(m: ti.template(), ray_p: ti.types.ndarray(dtype=vec4, ndim=1),
                 o = t0 + alpha[i] * (t1 - t0)  # as ray_setup
                 u = (p - o) / ti.max(r, 1e-9)
                 if ti.static(carve):
-                    carve_ray(m, o, u, r - trunc / c)
+                    s_free = r - trunc / c
+                    # near the sensor only a subset of the rays carves (see the docstring)
+                    s_voxels = s_dense / ti.cast(lowest_bit(i), ti.f32)
+                    carve_ray(m, o + s_free * u, -u, s_free - s_voxels,
+                              s_free - 2.0 * s_voxels)
                 k = footprint_steps(m, r, spacing_rad)
                 if k > 0:
                     e1, e2 = tangent_basis(nr)
