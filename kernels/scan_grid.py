@@ -10,9 +10,8 @@ the k nearest points within 2 voxels (the usual case on surfaces) are found exac
 sparse point gets the k nearest of that block (fewer than `min_neighbors`: the identity).
 
 One launch per scan: `downsample` (per chunk of raw points: free the previous scan's
-bricks, stage, insert, voxel means, and after the last chunk optionally `plane_rows`, which
-`plane_covariances` also runs on its own); few launches matter because a small scan's math
-costs less than launching kernels from Python.
+bricks, stage, insert, voxel means, and after the last chunk optionally `plane_rows`); few
+launches matter because a small scan's math costs less than launching kernels from Python.
 """
 
 import taichi as ti
@@ -381,21 +380,6 @@ def plane_rows(num_voxels: ti.i32, counts: ti.template(), k: ti.i32, min_neighbo
             n = smallest_eigenvector(S / ti.cast(found, ti.f32))
             row = ti.Vector([n[0], n[1], n[2], 1.0, normal_variance - 1.0, 0.0], ti.f32)
         out_plane[v] = row
-
-
-
-@ti.kernel
-def plane_covariances(num_voxels: ti.i32, counts: ti.template(), k: ti.i32,
-                      min_neighbors: ti.i32, normal_variance: ti.f32, voxel_brick: ti.template(),
-                      voxel_key: ti.template(),
-                      pts: ti.template(), slot_key: ti.template(), slot_brick: ti.template(),
-                      cells: ti.template(), occupancy: ti.template(),
-                      brick_start: ti.template(), brick_count: ti.template(),
-                      brick_points: ti.template(), out_plane: ti.template()):
-    """`plane_rows` of the first `num_voxels` points (see there)."""
-    plane_rows(num_voxels, counts, k, min_neighbors, normal_variance, voxel_brick, voxel_key,
-               pts, slot_key, slot_brick, cells, occupancy, brick_start, brick_count,
-               brick_points, out_plane)
 
 
 @ti.func

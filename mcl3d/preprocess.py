@@ -235,20 +235,6 @@ class ScanGrid:
         self.num_voxels = count
         return count
 
-    def covariances(self, pts, out_rows, k_neighbors: int = 10) -> None:
-        """Plane covariance rows (n, 1, 1e-3 - 1, 0) of the points `downsample` wrote into
-        `pts`, into `out_rows` (a 6-vector field): batch_gicp.plane_form's layout."""
-        from mcl3d.kernels import scan_grid
-
-        if not MIN_NEIGHBORS <= k_neighbors <= scan_grid.MAX_K:
-            raise ConfigError(f"k_neighbors must be in {MIN_NEIGHBORS}..{scan_grid.MAX_K} on "
-                              f"the device, got {k_neighbors}")
-        scan_grid.plane_covariances(self.num_voxels, self.counts, k_neighbors, MIN_NEIGHBORS,
-                                    PLANE_EIGENVALUES[0], self.voxel_brick, self.voxel_key,
-                                    pts, self.slot_key, self.slot_brick, self.cells,
-                                    self.occupancy, self.brick_start, self.brick_count,
-                                    self.brick_points, out_rows)
-
 
 def plane_rows_to_covs(rows: np.ndarray) -> np.ndarray:
     """(N, 3, 3) covariances αI + βnnᵀ from plane rows (n, α, β, ...)."""

@@ -425,9 +425,8 @@ class MonteCarloSlam:
         if oc.k_neighbors <= MAX_K:
             n = self.grid.downsample(points, cfg.scan_voxel_m, self._grid_pts,
                                      None if twist is None else times, twist, oc.min_range_m,
-                                     oc.max_range_m)
+                                     oc.max_range_m, self._grid_rows, oc.k_neighbors)
             if n is not None:
-                self.grid.covariances(self._grid_pts, self._grid_rows, oc.k_neighbors)
                 down, rows = download_rows(self._grid_pts, self._grid_rows, n)
                 return down, plane_rows_to_covs(rows)
         if twist is not None:

@@ -24,13 +24,22 @@ def box_scan(rng, length_m, n=6000):
     return np.vstack(faces)
 
 
-@pytest.fixture
-def odometry(ti_runtime):
+@pytest.fixture(scope="module")
+def module_odometry(request):
+    """One Odometry for the tests below, `reset` between them: its kernels compile once."""
+    from mcl3d import runtime
     from mcl3d.odometry import Odometry, OdometryConfig
 
+    runtime.init(request.config.getoption("--backend"))
     cfg = OdometryConfig(voxel_size_m=0.2, map_voxel_size_m=0.5, max_keyframes=2,
                          buckets_per_map=1 << 13, max_points=4096)
     return Odometry(cfg)
+
+
+@pytest.fixture
+def odometry(module_odometry):
+    module_odometry.reset()
+    return module_odometry
 
 
 def test_room_motion_is_tracked_and_a_corridor_is_flagged(odometry):
@@ -44,9 +53,8 @@ def test_room_motion_is_tracked_and_a_corridor_is_flagged(odometry):
     np.testing.assert_allclose(frame.T_world_lidar[:3, 3], [0.2, 0.1, 0.0], atol=0.02)
     assert np.all(np.linalg.eigvalsh(frame.covariance) > 0)
 
-    from mcl3d.odometry import Odometry
-
-    corridor = Odometry(odometry.cfg)
+    corridor = odometry
+    corridor.reset()
     tube = box_scan(rng, 200.0)  # walls only within reach: nothing pins x
     tube = tube[np.abs(tube[:, 0]) < 40.0]
     corridor.step(tube, None, 0)

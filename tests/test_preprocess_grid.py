@@ -27,10 +27,10 @@ def grid(ti_runtime):
 
 
 def run(grid, points, voxel_m, k=10, **kw):
-    n = grid.downsample(points, voxel_m, grid.out_pts, **kw)
+    n = grid.downsample(points, voxel_m, grid.out_pts, out_rows=grid.out_rows, k_neighbors=k,
+                        **kw)
     if n is None:
         return None, None
-    grid.covariances(grid.out_pts, grid.out_rows, k)
     return download_rows(grid.out_pts, grid.out_rows, n)
 
 
@@ -41,7 +41,7 @@ def by_voxel(points, voxel_m):
 
 
 def reference_covariances(points, voxel_m, k, min_neighbors=5):
-    """float64 NumPy reference of plane_covariances: the k nearest within 2 voxels
+    """float64 NumPy reference of the grid's plane covariances: the k nearest within 2 voxels
     (Chebyshev), else within the 3x3x3 bricks of 4^3 voxels; eigenvalues (1e-3, 1, 1)."""
     keys = np.floor(points / voxel_m).astype(np.int64)
     bricks = np.floor_divide(keys, 4)
@@ -102,29 +102,6 @@ def test_covariances_match_numpy_on_surfaces_and_sparse_points(grid):
     assert np.array_equal(got, again_pts) and np.array_equal(rows, again_rows)
 
 
-def test_covariances_in_the_downsampling_launch_equal_the_separate_ones(grid, ti_runtime):
-    """downsample(..., out_rows=...) runs plane_rows in the same launch (one chunk and
-    several): the same bits as downsample then covariances."""
-    import taichi as ti
-
-    rng = np.random.default_rng(5)
-    wall = np.c_[rng.uniform(0, 3, 400), np.full(400, 1.3), rng.uniform(-1, 1, 400)]
-    lone = rng.uniform(-8, 8, (30, 3)) + np.array([12.0, 0.0, 0.0])
-    rows = ti.Vector.field(6, ti.f32, 2048)
-    for pts in (np.vstack([wall, lone])[:200], np.vstack([wall, lone])):  # 1 and 2 chunks
-        times = np.linspace(-0.05, 0.05, len(pts))
-        twist = np.array([0.0, 0.1, 0.4, 1.0, 0.2, 0.0])
-        ref_pts, ref_rows = run(grid, pts, 0.2, times_s=times, twist=twist)
-        n = grid.downsample(pts, 0.2, grid.out_pts, times, twist, out_rows=rows,
-                            k_neighbors=10)
-        got_pts, got_rows = download_rows(grid.out_pts, rows, n)
-        assert np.array_equal(got_pts, ref_pts) and np.array_equal(got_rows, ref_rows)
-    small = ti.Vector.field(3, ti.f32, 10)
-    assert grid.downsample(wall, 0.05, small, out_rows=rows) is None  # does not fit
-    with pytest.raises(ConfigError, match="k_neighbors"):
-        grid.downsample(wall, 0.2, grid.out_pts, out_rows=rows, k_neighbors=40)
-
-
 def test_too_many_voxels_give_none_and_bad_parameters_raise(grid, ti_runtime):
     import taichi as ti
 
@@ -134,7 +111,8 @@ def test_too_many_voxels_give_none_and_bad_parameters_raise(grid, ti_runtime):
     assert grid.downsample(pts[:100], 0.05, small) is None  # more than the output holds
     with pytest.raises(ConfigError, match="voxel_size_m"):
         grid.downsample(pts, 0.0, grid.out_pts)
+    assert grid.downsample(pts[:100], 0.05, small, out_rows=grid.out_rows) is None
     with pytest.raises(ConfigError, match="k_neighbors"):
-        grid.covariances(grid.out_pts, grid.out_rows, 3)
+        grid.downsample(pts, 0.2, grid.out_pts, out_rows=grid.out_rows, k_neighbors=40)
     n = grid.downsample(np.zeros((0, 3)), 0.5, grid.out_pts)
     assert n == 0
