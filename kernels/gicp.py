@@ -53,15 +53,29 @@ LM_MAX_LAMBDA = 1e7
 
 
 @ti.func
-def to_right_perturbation(R: ti.math.mat3, H, b):
-    """H, b of the centred perturbation -> rotation-first right perturbation of the pose:
-    with D = diag(R, R), H_r = Dᵀ H D and b_r = Dᵀ b."""
-    D = ti.Matrix.zero(ti.f32, 6, 6)
+def to_right_perturbation(R: ti.math.mat3, S_rr: vec6, S_tr: ti.math.mat3, S_tt: vec6,
+                          b_r: vec3, b_t: vec3):
+    """H, b of the centred perturbation, from its block sums (see linearize), -> rotation-first
+    right perturbation of the pose: with D = diag(R, R), H_r = Dᵀ H D and b_r = Dᵀ b, taken
+    block by block (Rᵀ X R), as a 6x6 product would, without its 27 products by 0 per entry
+    (those took half of `iterate`'s compile time)."""
+    Rt = R.transpose()
+    rr = (Rt @ sym_to_mat(S_rr)) @ R
+    rt = (Rt @ -S_tr.transpose()) @ R
+    tt = (Rt @ sym_to_mat(S_tt)) @ R
+    br = Rt @ b_r
+    bt = Rt @ -b_t
+    H = ti.Matrix.zero(ti.f32, 6, 6)
+    b = ti.Vector.zero(ti.f32, 6)
     for i in ti.static(range(3)):
+        b[i] = br[i]
+        b[i + 3] = bt[i]
         for j in ti.static(range(3)):
-            D[i, j] = R[i, j]
-            D[i + 3, j + 3] = R[i, j]
-    return D.transpose() @ H @ D, D.transpose() @ b
+            H[i, j] = rr[i, j]
+            H[i, j + 3] = rt[i, j]
+            H[i + 3, j] = rt[j, i]
+            H[i + 3, j + 3] = tt[i, j]
+    return H, b
 
 
 @ti.func
@@ -110,6 +124,19 @@ def key_matches(key: ti.math.ivec3, cell: ti.math.ivec3) -> ti.i32:
 
 
 @ti.func
+def faces_map(R: ti.math.mat3, x: vec3, p_src: vec3, ca: vec6, facing_cos: ti.f32) -> ti.i32:
+    """0 for a plane point whose surface faces away from the map's sensor (GLIM's surface
+    validation): its normal, turned towards the source sensor and rotated into the map frame,
+    makes an angle under acos(facing_cos) with the ray from the map origin to it, x. The map
+    could not have seen that side: the back of a tree trunk matched to its front. 1 for
+    every other point (identity covariances carry no normal; facing_cos > 1 turns it off)."""
+    n = vec3(ca[0], ca[1], ca[2])
+    rn = R @ (n * ti.select(n.dot(p_src) > 0.0, -1.0, 1.0))
+    away = (x.dot(rn) > facing_cos * x.norm()) & (ca[4] != 0.0)
+    return ti.select(away, 0, 1)
+
+
+@ti.func
 def point_terms(R: ti.math.mat3, B, q: vec3, t: vec3, mean: vec3, CB: ti.math.mat3, ca: vec6,
                 hit: ti.i32, plane: ti.template()):
     """One correspondence's terms (all 0 unless `hit`): upper(hat(q)ᵀ M hat(q)), M hat(q),
@@ -144,7 +171,7 @@ def linearize(src_pts: ti.template(), src_cov: ti.template(), row_group: ti.temp
               status: ti.template(), vox: ti.template(), res: ti.template(), buckets: ti.i32,
               max_probes: ti.i32, acc_H: ti.template(), acc_b: ti.template(),
               acc_e: ti.template(), acc_n: ti.template(), exclusive: ti.template(),
-              plane_cov: ti.template(), serial: ti.template()):
+              plane_cov: ti.template(), serial: ti.template(), facing_cos: ti.f32):
     """`src_cov` holds upper(C_A) (see rotated_cov_basis), or (n, α, β, 0) with `plane_cov`
     (see rotated_source_cov). `exclusive`: every group has one row and one chunk, so each task
     owns its group's sums and stores them in acc_*[group]; otherwise task (r, c) stores its
@@ -152,7 +179,8 @@ def linearize(src_pts: ti.template(), src_cov: ti.template(), row_group: ti.temp
     in a fixed order: float atomics would make every run differ in the last bits, and a
     tracker or particle filter turns those into different trajectories. `serial`: a small
     problem (one scan) runs on the calling thread, where waking the pool costs more than it
-    saves (and on a busy machine a descheduled worker stalls the launch)."""
+    saves (and on a busy machine a descheduled worker stalls the launch). `facing_cos`: see
+    faces_map (plane covariances only)."""
     ti.loop_config(serialize=serial)
     for r, c in ti.ndrange(num_rows, num_chunks):
         g = row_group[r]
@@ -209,6 +237,8 @@ def linearize(src_pts: ti.template(), src_cov: ti.template(), row_group: ti.temp
                     probe_on[j] = ti.select(on, 1, 0)
                     num_probe_on += ti.select(on, 1, 0)
                     hit = valid & occupied & found
+                    if ti.static(plane_cov):
+                        hit &= faces_map(R, q + t, src_pts[k], src_cov[k], facing_cos)
                     rr, tr, tt, br, bt, ee = point_terms(R, B, q, t, vox[s].mean, vox[s].cov,
                                                          src_cov[k], hit, plane_cov)
                     S_rr += rr
@@ -225,7 +255,10 @@ def linearize(src_pts: ti.template(), src_cov: ti.template(), row_group: ti.temp
                             q = R @ src_pts[k]
                             s = lookup_from(vox, ti.cast(ti.floor((q + t) * inv_res), ti.i32), 1,
                                             m, buckets, max_probes)
-                            if s >= 0:
+                            hit = ti.select(s >= 0, 1, 0)
+                            if ti.static(plane_cov):
+                                hit &= faces_map(R, q + t, src_pts[k], src_cov[k], facing_cos)
+                            if hit:
                                 rr, tr, tt, br, bt, ee = point_terms(
                                     R, B, q, t, vox[s].mean, vox[s].cov, src_cov[k], True,
                                     plane_cov)
@@ -237,19 +270,7 @@ def linearize(src_pts: ti.template(), src_cov: ti.template(), row_group: ti.temp
                                 err += ee
                                 n += 1
             if n > 0:
-                H = ti.Matrix.zero(ti.f32, 6, 6)
-                b = ti.Vector.zero(ti.f32, 6)
-                rr = sym_to_mat(S_rr)
-                tt = sym_to_mat(S_tt)
-                for i in ti.static(range(3)):
-                    b[i] = b_r[i]
-                    b[i + 3] = -b_t[i]
-                    for j in ti.static(range(3)):
-                        H[i, j] = rr[i, j]
-                        H[i, j + 3] = -S_tr[j, i]
-                        H[i + 3, j] = -S_tr[i, j]
-                        H[i + 3, j + 3] = tt[i, j]
-                H_r, b_r6 = to_right_perturbation(R, H, b)
+                H_r, b_r6 = to_right_perturbation(R, S_rr, S_tr, S_tt, b_r, b_t)
                 acc_H[slot] = H_r
                 acc_b[slot] = b_r6
                 acc_e[slot] = err
@@ -403,14 +424,16 @@ def iterate(src_pts: ti.template(), src_cov: ti.template(), row_group: ti.templa
             acc_H: ti.template(), acc_b: ti.template(), acc_e: ti.template(),
             acc_n: ti.template(), best_H: ti.template(), best_b: ti.template(),
             best_e: ti.template(), best_n: ti.template(), serial: ti.template(),
-            serial_linearize: ti.template()) -> ti.i32:
+            facing_cos: ti.f32) -> ti.i32:
     """One Gauss-Newton/LM iteration of every running group in one launch: `linearize`
     (into task_* sums, which are the acc_* fields when `exclusive`), `reduce_tasks` (unless
     `exclusive`), then `step`; returns how many groups run on. One launch instead of three
-    matters for small problems (a scan of odometry), where launching costs more than the math."""
+    matters for small problems (a scan of odometry), where launching costs more than the math.
+    `serial` (a small problem, see linearize) runs all three on the calling thread."""
     linearize(src_pts, src_cov, row_group, row_map, row_q, row_t, row_start, row_count,
               num_rows, chunk, num_chunks, q_cand, t_cand, status, vox, res, buckets,
-              max_probes, task_H, task_b, task_e, task_n, exclusive, plane_cov, serial_linearize)
+              max_probes, task_H, task_b, task_e, task_n, exclusive, plane_cov, serial,
+              facing_cos)
     if ti.static(not exclusive):
         reduce_tasks(num_rows, num_chunks, row_group, status, task_H, task_b, task_e, task_n,
                      acc_H, acc_b, acc_e, acc_n, one_row_per_group)

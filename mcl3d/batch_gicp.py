@@ -17,8 +17,9 @@ from mcl3d.gaussian_voxels import GaussianVoxelMaps, check_points
 from mcl3d.geometry import quat_to_rot, se3
 
 STATUS_NAMES = ("running", "converged", "no correspondences", "stalled")
-SERIAL_GROUPS = 64  # fewer poses: solve and reset them on the calling thread
-SERIAL_CORRESPONDENCES = 1 << 15  # fewer: linearize on the calling thread (~0.25 ms on cpu)
+SERIAL_GROUPS = 64  # fewer poses: reset and read them back on the calling thread
+SERIAL_CORRESPONDENCES = 1 << 15  # fewer: iterate on the calling thread (~0.25 ms on cpu)
+SURFACE_VALIDATION_COS = 0.174  # cos 80°: GLIM's threshold (kernels/gicp.faces_map)
 PLANE_FORM_RTOL = 1e-6  # what plane_form may change of a covariance, relative to its largest entry
 
 
@@ -255,15 +256,18 @@ class BatchGicp:
         """Points per task: whole rows when the batch alone fills the threads (few atomics on
         cpu) or runs on one thread anyway (`serial_correspondences`), smaller chunks so that
         one pose still spreads over every thread or GPU lane."""
-        if self._serial_linearize():
+        if self._serial():
             return self._max_count
         tasks = 256 if self.maps.runtime.backend == "cpu" else 65536
         work = self._rows * self._max_count
         return int(min(self._max_count, max(64, -(-work // tasks))))
 
     def iterate(self, use_lm: bool = False, rotation_eps_rad: float = 1e-3 * np.pi / 180,
-                translation_eps_m: float = 1e-4, chunk: int | None = None) -> int:
-        """One linearization of every running pose plus one solve; returns how many run on."""
+                translation_eps_m: float = 1e-4, chunk: int | None = None,
+                validate_surfaces: bool = False) -> int:
+        """One linearization of every running pose plus one solve; returns how many run on.
+        `validate_surfaces` drops plane points whose surface faces away from the sensor of the
+        map they are matched in (the map's origin; keyframe maps in their lidar frame)."""
         from mcl3d.kernels import gicp
 
         maps = self.maps
@@ -282,10 +286,11 @@ class BatchGicp:
                             self.q_cand, self.t_cand, self.lam, self.status, self.iters,
                             self.acc_H, self.acc_b, self.acc_e, self.acc_n, self.best_H,
                             self.best_b, self.best_e, self.best_n,
-                            self._groups < SERIAL_GROUPS, self._serial_linearize())
+                            self._serial(),
+                            SURFACE_VALIDATION_COS if validate_surfaces else 2.0)
 
-    def _serial_linearize(self) -> bool:
-        """Few correspondences: linearize on the calling thread (see kernels/gicp.linearize)."""
+    def _serial(self) -> bool:
+        """Few correspondences: the whole iteration on the calling thread (see gicp.linearize)."""
         return self._rows * self._max_count <= self.serial_correspondences
 
     def _task_sums(self, tasks: int) -> tuple:
@@ -301,14 +306,16 @@ class BatchGicp:
     def optimize(self, max_iterations: int = 20, use_lm: bool = False,
                  rotation_eps_rad: float = 1e-3 * np.pi / 180,
                  translation_eps_m: float = 1e-4, overlap_maps: list[int] | None = None,
-                 overlap_T_left: np.ndarray | None = None) -> BatchResult:
+                 overlap_T_left: np.ndarray | None = None,
+                 validate_surfaces: bool = False) -> BatchResult:
         """Iterate until every pose converged or `max_iterations` linearizations were used,
         then `result` (with the overlap when `overlap_maps` are given).
         With max_iterations=1 this only evaluates H, b, error at the initial poses."""
         if max_iterations < 1:
             raise ConfigError(f"max_iterations must be >= 1, got {max_iterations}")
         for _ in range(max_iterations):
-            if self.iterate(use_lm, rotation_eps_rad, translation_eps_m) == 0:
+            if self.iterate(use_lm, rotation_eps_rad, translation_eps_m,
+                            validate_surfaces=validate_surfaces) == 0:
                 break
         return self.result(overlap_maps, overlap_T_left)
 

@@ -52,6 +52,8 @@ class OdometryConfig(Section):
     degeneracy_ratio: float = Field(0.05, gt=0, description="degenerate when the Hessian's "
                                     "translation block has min/max eigenvalue below this")
     rotation_degeneracy_ratio: float = Field(1e-5, gt=0, description="the same for rotation")
+    validate_surfaces: bool = Field(True, description="drop points whose surface faces away "
+                                    "from the keyframe that saw it (GLIM's surface validation)")
     min_inliers: int = Field(50, ge=6, description="fewer correspondences: registration lost")
     buckets_per_map: int = Field(1 << 16, description="hash slots per keyframe map level "
                                  "(a power of two, at least twice max_points)")
@@ -280,7 +282,8 @@ class Odometry:
         out = self.gicp.optimize(
             cfg.max_iterations,
             overlap_maps=[slot * cfg.map_levels + cfg.map_levels - 1 for slot, *_ in newest_first],
-            overlap_T_left=np.stack([T_kf_world for *_, T_kf_world in newest_first]))
+            overlap_T_left=np.stack([T_kf_world for *_, T_kf_world in newest_first]),
+            validate_surfaces=cfg.validate_surfaces)
         T, H, inliers = out.T[0], out.H[0], int(out.num_inliers[0])
         overlap = float(out.overlap[0])
         warnings = []
