@@ -42,15 +42,26 @@ def reference_voxels(points, covs):
     return {tuple(k): i for i, k in enumerate(uniq)}, means, avg / n[:, None, None]
 
 
-def reference_linearize(vox, src, src_covs, T):
-    """float64 H, b, error, inliers of the GICP cost at pose T (fixed M, one voxel each)."""
+def faces_away(R, x, a, Ca, facing_cos):
+    """Surface validation: the plane normal of Ca (smallest eigenvector), turned towards the
+    source sensor at 0 and rotated, within acos(facing_cos) of the ray from 0 to x."""
+    w, V = np.linalg.eigh(Ca)
+    if np.isclose(w[0], w[2]):
+        return False  # identity: no normal
+    n = V[:, 0] if a @ V[:, 0] <= 0 else -V[:, 0]
+    return x @ (R @ n) > facing_cos * np.linalg.norm(x)
+
+
+def reference_linearize(vox, src, src_covs, T, facing_cos=None):
+    """float64 H, b, error, inliers of the GICP cost at pose T (fixed M, one voxel each),
+    with surface validation when `facing_cos` is given."""
     index, means, vcovs = vox
     R, t = T[:3, :3], T[:3, 3]
     H, b, err, n = np.zeros((6, 6)), np.zeros(6), 0.0, 0
     for a, Ca in zip(src, src_covs, strict=True):
         p = R @ a + t
         i = index.get(tuple(np.floor(p / RES).astype(np.int64)))
-        if i is None:
+        if i is None or (facing_cos is not None and faces_away(R, p, a, Ca, facing_cos)):
             continue
         e = means[i] - p
         M = np.linalg.inv(vcovs[i] + R @ Ca @ R.T)
@@ -146,6 +157,28 @@ def test_kernel_cost_hessian_gradient_match_numpy(problem):
         np.testing.assert_allclose(out.error[k], err, rtol=1e-4)
         np.testing.assert_allclose(out.b[k], b, rtol=1e-3, atol=1e-3 * np.abs(b).max())
         np.testing.assert_allclose(out.H[k], H, rtol=1e-3, atol=1e-4 * np.abs(H).max())
+
+
+def test_surface_validation_drops_what_the_map_sensor_could_not_see(problem):
+    """validate_surfaces: map 1's sensor sits at the world's (-9.6, 3.0, 0), beyond the
+    y = 0.5 wall from the source sensor at 0: points of that wall seen at an angle face away
+    from it and weigh nothing; in map 0 (the same sensor position) every point counts."""
+    from mcl3d.batch_gicp import SURFACE_VALIDATION_COS
+
+    gicp, src, covs, T_shift = (problem[k] for k in ("gicp", "src", "src_covs", "T_shift"))
+    T = se3(so3_exp([0.01, -0.02, 0.03]), [0.1, -0.05, 0.05])
+    kept = []
+    for map_id, vox, T_left in ((0, problem["vox"], np.eye(4)), (1, problem["vox1"], T_shift)):
+        gicp.set_problem(T[None], row_group=[0], row_map=[map_id], T_left=T_left[None])
+        out = gicp.optimize(max_iterations=1, validate_surfaces=True)
+        H, b, err, n = reference_linearize(vox, src, covs, T_left @ T, SURFACE_VALIDATION_COS)
+        _, _, _, n_all = reference_linearize(vox, src, covs, T_left @ T)
+        assert out.num_inliers[0] == n
+        np.testing.assert_allclose(out.error[0], err, rtol=1e-4)
+        np.testing.assert_allclose(out.b[0], b, rtol=1e-3, atol=1e-3 * np.abs(b).max())
+        np.testing.assert_allclose(out.H[0], H, rtol=1e-3, atol=1e-4 * np.abs(H).max())
+        kept.append((n, n_all))
+    assert kept[0][0] == kept[0][1] and 0 < kept[1][1] - kept[1][0] < kept[1][1] // 3
 
 
 def test_one_gauss_newton_step_matches_numpy(problem):
