@@ -46,6 +46,10 @@ class OdometryConfig(Section):
     registration_keyframes: int = Field(3, ge=1, description="register against this many "
                                         "keyframes nearest to the predicted pose")
     max_iterations: int = Field(20, ge=1, description="Gauss-Newton iterations per scan")
+    converged_rotation_deg: float = Field(0.1, gt=0, description="converged when a step "
+                                          "rotates less than this (small_gicp's default)")
+    converged_translation_m: float = Field(1e-3, gt=0, description="... and moves less "
+                                           "than this (small_gicp's default)")
     deskew: bool = Field(True, description="undo motion within a sweep (per-point times)")
     use_imu: bool = Field(True, description="predict with IMU preintegration when the log "
                           "has an IMU")
@@ -280,7 +284,8 @@ class Odometry:
                               T_left=np.stack(lefts))
         newest_first = self.keyframes[::-1]  # the likeliest hit first: fewer lookups
         out = self.gicp.optimize(
-            cfg.max_iterations,
+            cfg.max_iterations, rotation_eps_rad=np.radians(cfg.converged_rotation_deg),
+            translation_eps_m=cfg.converged_translation_m,
             overlap_maps=[slot * cfg.map_levels + cfg.map_levels - 1 for slot, *_ in newest_first],
             overlap_T_left=np.stack([T_kf_world for *_, T_kf_world in newest_first]),
             validate_surfaces=cfg.validate_surfaces)
