@@ -79,6 +79,8 @@ job="${1:-}"
 case "$job" in
   "") say "ready: .venv/bin/mcl3d --help" ;;
   demo) exec .venv/bin/mcl3d demo "$@" ;;
-  test) exec .venv/bin/python -m pytest "$@" ;;
+  # two workers, a test file each at a time (module fixtures stay shared): most of a cold
+  # run is Taichi compiling kernels, one core per process
+  test) exec .venv/bin/python -m pytest -n 2 --dist loadfile "$@" ;;
   *) echo "usage: bash setup.sh [demo|test] [args...]" >&2; exit 2 ;;
 esac
