@@ -94,12 +94,12 @@ def rotated_cov_basis(R: ti.math.mat3):
 
 
 @ti.func
-def rotated_source_cov(R: ti.math.mat3, B, ca: vec6, plane: ti.template()) -> vec6:
+def rotated_source_cov(B, ca: vec6, rn: vec3, plane: ti.template()) -> vec6:
     """upper(R C_A Rᵀ) from the stored source covariance `ca`: upper(C_A) with the row's
-    basis B (rotated_cov_basis), or with `plane` (n, α, β) for C_A = αI + β nnᵀ."""
+    basis B (rotated_cov_basis), or with `plane` (n, α, β) for C_A = αI + β nnᵀ, given
+    rn = R n."""
     out = vec6(0.0)
     if ti.static(plane):
-        rn = R @ vec3(ca[0], ca[1], ca[2])
         bn = ca[4] * rn
         out = vec6(ca[3] + bn[0] * rn[0], bn[0] * rn[1], bn[0] * rn[2],
                    ca[3] + bn[1] * rn[1], bn[1] * rn[2], ca[3] + bn[2] * rn[2])
@@ -124,24 +124,25 @@ def key_matches(key: ti.math.ivec3, cell: ti.math.ivec3) -> ti.i32:
 
 
 @ti.func
-def faces_map(R: ti.math.mat3, x: vec3, p_src: vec3, ca: vec6, facing_cos: ti.f32) -> ti.i32:
+def faces_map(x: vec3, rn: vec3, p_src: vec3, ca: vec6, facing_cos: ti.f32) -> ti.i32:
     """0 for a plane point whose surface faces away from the map's sensor (GLIM's surface
-    validation): its normal, turned towards the source sensor and rotated into the map frame,
-    makes an angle under acos(facing_cos) with the ray from the map origin to it, x. The map
-    could not have seen that side: the back of a tree trunk matched to its front. 1 for
-    every other point (identity covariances carry no normal; facing_cos > 1 turns it off)."""
-    n = vec3(ca[0], ca[1], ca[2])
-    rn = R @ (n * ti.select(n.dot(p_src) > 0.0, -1.0, 1.0))
-    away = (x.dot(rn) > facing_cos * x.norm()) & (ca[4] != 0.0)
+    validation): its normal n, turned towards the source sensor and rotated into the map
+    frame (rn = R n, up to that sign), makes an angle under acos(facing_cos) with the ray
+    from the map origin to it, x. The map could not have seen that side: the back of a tree
+    trunk matched to its front. 1 for every other point (identity covariances carry no
+    normal; facing_cos > 1 turns it off). Compared squared (facing_cos >= 0): no root."""
+    c = x.dot(rn) * ti.select(vec3(ca[0], ca[1], ca[2]).dot(p_src) > 0.0, -1.0, 1.0)
+    away = (c > 0.0) & (c * c > facing_cos * facing_cos * x.dot(x)) & (ca[4] != 0.0)
     return ti.select(away, 0, 1)
 
 
 @ti.func
-def point_terms(R: ti.math.mat3, B, q: vec3, t: vec3, mean: vec3, CB: ti.math.mat3, ca: vec6,
+def point_terms(B, q: vec3, t: vec3, mean: vec3, CB: ti.math.mat3, ca: vec6, rn: vec3,
                 hit: ti.i32, plane: ti.template()):
     """One correspondence's terms (all 0 unless `hit`): upper(hat(q)ᵀ M hat(q)), M hat(q),
-    upper(M), hat(q)ᵀ M e, M e and ½ eᵀ M e, with q = R μ_A, e = μ_B − q − t."""
-    M = sym_inverse(rotated_source_cov(R, B, ca, plane)
+    upper(M), hat(q)ᵀ M e, M e and ½ eᵀ M e, with q = R μ_A, e = μ_B − q − t (rn: see
+    rotated_source_cov)."""
+    M = sym_inverse(rotated_source_cov(B, ca, rn, plane)
                     + vec6(CB[0, 0], CB[0, 1], CB[0, 2], CB[1, 1], CB[1, 2], CB[2, 2]), hit)
     e = mean - q - t
     Me = vec3(M[0] * e[0] + M[1] * e[1] + M[2] * e[2],
@@ -219,16 +220,20 @@ def linearize(src_pts: ti.template(), src_cov: ti.template(), row_group: ti.temp
                 # points whose home slot holds another key probe on. Computing the slots
                 # apart, before any table read, is what keeps the reads cheap (~15% faster).
                 slots = ti.Vector.zero(ti.i32, LOOKAHEAD)
+                qs = ti.Matrix.zero(ti.f32, 3, LOOKAHEAD)  # R μ_A of each point
                 for j in range(LOOKAHEAD):
-                    p = R @ src_pts[first + block * LOOKAHEAD + j] + t
-                    slots[j] = probe_slot(ti.cast(ti.floor(p * inv_res), ti.i32), 0, m, buckets)
+                    q = R @ src_pts[first + block * LOOKAHEAD + j]
+                    for a in ti.static(range(3)):
+                        qs[a, j] = q[a]
+                    slots[j] = probe_slot(ti.cast(ti.floor((q + t) * inv_res), ti.i32), 0, m,
+                                          buckets)
                 probe_on = ti.Vector.zero(ti.i32, LOOKAHEAD)
                 num_probe_on = 0
                 for j in range(LOOKAHEAD):
                     kk = block * LOOKAHEAD + j
                     k = first + kk
                     s = slots[j]
-                    q = R @ src_pts[k]
+                    q = vec3(qs[0, j], qs[1, j], qs[2, j])
                     key = vox[s].key
                     found = key_matches(key, ti.cast(ti.floor((q + t) * inv_res), ti.i32))
                     occupied = vox[s].state != EMPTY
@@ -237,10 +242,12 @@ def linearize(src_pts: ti.template(), src_cov: ti.template(), row_group: ti.temp
                     probe_on[j] = ti.select(on, 1, 0)
                     num_probe_on += ti.select(on, 1, 0)
                     hit = valid & occupied & found
+                    rn = vec3(0.0)
                     if ti.static(plane_cov):
-                        hit &= faces_map(R, q + t, src_pts[k], src_cov[k], facing_cos)
-                    rr, tr, tt, br, bt, ee = point_terms(R, B, q, t, vox[s].mean, vox[s].cov,
-                                                         src_cov[k], hit, plane_cov)
+                        rn = R @ vec3(src_cov[k][0], src_cov[k][1], src_cov[k][2])
+                        hit &= faces_map(q + t, rn, src_pts[k], src_cov[k], facing_cos)
+                    rr, tr, tt, br, bt, ee = point_terms(B, q, t, vox[s].mean, vox[s].cov,
+                                                         src_cov[k], rn, hit, plane_cov)
                     S_rr += rr
                     S_tr += tr
                     S_tt += tt
@@ -256,11 +263,13 @@ def linearize(src_pts: ti.template(), src_cov: ti.template(), row_group: ti.temp
                             s = lookup_from(vox, ti.cast(ti.floor((q + t) * inv_res), ti.i32), 1,
                                             m, buckets, max_probes)
                             hit = ti.select(s >= 0, 1, 0)
+                            rn = vec3(0.0)
                             if ti.static(plane_cov):
-                                hit &= faces_map(R, q + t, src_pts[k], src_cov[k], facing_cos)
+                                rn = R @ vec3(src_cov[k][0], src_cov[k][1], src_cov[k][2])
+                                hit &= faces_map(q + t, rn, src_pts[k], src_cov[k], facing_cos)
                             if hit:
                                 rr, tr, tt, br, bt, ee = point_terms(
-                                    R, B, q, t, vox[s].mean, vox[s].cov, src_cov[k], True,
+                                    B, q, t, vox[s].mean, vox[s].cov, src_cov[k], rn, True,
                                     plane_cov)
                                 S_rr += rr
                                 S_tr += tr
