@@ -224,15 +224,15 @@ class BuildMapPipeline:
         n_scans = n_empty = 0
         self._deskewed = False
         for cloud in reader.scans():
-            pts = np.asarray(cloud.points, dtype=np.float64)
+            pts = np.asarray(cloud.points, dtype=np.float32).reshape(-1, 3)
             T, _, _ = self._scan_pose(traj, cloud)
-            r = np.linalg.norm(pts, axis=1) if len(pts) else np.zeros(0)
-            pts = pts[(r >= cfg.min_range_m) & (r <= cfg.max_range_m)]
+            r2 = (pts * pts).sum(axis=1)  # f32 and squared: this pass reads every scan
+            pts = pts[(r2 >= cfg.min_range_m**2) & (r2 <= cfg.max_range_m**2)]
             n_scans += 1
             if len(pts) == 0:
                 n_empty += 1
                 continue
-            world = pts @ T[:3, :3].T + T[:3, 3]
+            world = pts @ T[:3, :3].T.astype(np.float32) + T[:3, 3].astype(np.float32)
             lo, hi = np.minimum(lo, world.min(axis=0)), np.maximum(hi, world.max(axis=0))
         if n_scans == n_empty:
             raise PointCloudError(
