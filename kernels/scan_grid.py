@@ -12,6 +12,9 @@ sparse point gets the k nearest of that block (fewer than `min_neighbors`: the i
 One launch per scan: `downsample` (per chunk of raw points: free the previous scan's
 bricks, stage, insert, voxel means, and after the last chunk optionally `plane_rows`); few
 launches matter because a small scan's math costs less than launching kernels from Python.
+Few parallel loops too: on the cpu backend each one costs ~70 us of thread-pool hand-offs
+(a 2-core VM, Taichi 1.7.4), so only staging and `plane_rows` run in parallel and the ordered
+passes are serialized loops (`ti.loop_config(serialize=True)`: free).
 """
 
 import taichi as ti
@@ -95,80 +98,89 @@ def insert_points(n: ti.i32, first_chunk: ti.i32, voxel_m: ti.f32, stage_p: ti.t
                   stage_key: ti.template(),
                   stage_ok: ti.template(), slot_key: ti.template(), slot_brick: ti.template(),
                   brick_slot: ti.template(), cells: ti.template(), occupancy: ti.template(),
-                  voxel_key: ti.template(),
-                  voxel_brick: ti.template(), voxel_sum: ti.template(),
-                  voxel_count: ti.template(), counts: ti.template()):
+                  voxel_key: ti.template(), voxel_sum: ti.template(),
+                  voxel_count: ti.template(), counts: ti.template(), brick_head: ti.template(),
+                  brick_tail: ti.template(), voxel_next: ti.template()):
     """Add the staged points to their voxels in one ordered pass (a new voxel gets the next
     output index; sums are offsets from the voxel centre so f32 stays precise far out).
     counts[None] = (voxels, bricks, overflow): overflow 1 when a voxel or brick did not fit,
-    then the scan must take another path. Points arrive in scan order, so consecutive points
-    mostly share a brick and skip the hash lookup."""
-    for _ in range(1):  # one task: the inner loop runs in order
-        num_voxels = 0
-        num_bricks = 0
-        overflow = 0
-        if not first_chunk:
-            num_voxels = counts[None][0]
-            num_bricks = counts[None][1]
-            overflow = counts[None][2]
-        max_voxels = voxel_key.shape[0]
-        max_bricks = brick_slot.shape[0]
-        mask = ti.cast(slot_key.shape[0] - 1, ti.u32)
-        last_b = ivec3(-(1 << 30))
-        last_brick = -1
-        for i in range(n):
-            if stage_ok[i] and overflow == 0:
-                key = stage_key[i]
-                b = brick_of(key)
-                brick = last_brick
-                if b[0] != last_b[0] or b[1] != last_b[1] or b[2] != last_b[2]:
-                    s = voxel_hash(b) & mask
-                    brick = -1
-                    while brick == -1:
-                        si = ti.cast(s, ti.i32)
-                        if slot_brick[si] < 0:
-                            if num_bricks < max_bricks:
-                                brick = num_bricks
-                                num_bricks += 1
-                                slot_brick[si] = brick
-                                slot_key[si] = b
-                                brick_slot[brick] = si
-                                for c in range(BRICK_CELLS):
-                                    cells[brick * BRICK_CELLS + c] = -1
-                                occupancy[2 * brick] = ti.u32(0)
-                                occupancy[2 * brick + 1] = ti.u32(0)
-                            else:
-                                brick = -2
-                        elif slot_key[si][0] == b[0] and slot_key[si][1] == b[1] \
-                                and slot_key[si][2] == b[2]:
-                            brick = slot_brick[si]
-                        s = (s + 1) & mask
-                    last_b = b
-                    last_brick = brick
-                if brick < 0:
-                    overflow = 1
-                else:
-                    local = cell_of(key)
-                    cell = brick * BRICK_CELLS + local
-                    v = cells[cell]
-                    if v < 0:
-                        if num_voxels < max_voxels:
-                            v = num_voxels
-                            num_voxels += 1
-                            cells[cell] = v
-                            occupancy[2 * brick + (local >> 5)] |= ti.u32(1) << ti.cast(
-                                local & 31, ti.u32)
-                            voxel_key[v] = key
-                            voxel_brick[v] = brick
-                            voxel_sum[v] = vec3(0.0)
-                            voxel_count[v] = 0
+    then the scan must take another path. Where consecutive points share a brick (scan order
+    of some sensors) they skip the hash lookup. Each brick's voxels form a list in voxel order
+    (brick_head, voxel_next; brick_tail appends) for the wider search of gather_bricks."""
+    num_voxels = 0
+    num_bricks = 0
+    overflow = 0
+    if not first_chunk:
+        num_voxels = counts[None][0]
+        num_bricks = counts[None][1]
+        overflow = counts[None][2]
+    max_voxels = voxel_key.shape[0]
+    max_bricks = brick_slot.shape[0]
+    mask = ti.cast(slot_key.shape[0] - 1, ti.u32)
+    last_b = ivec3(-(1 << 30))
+    last_brick = -1
+    # in order; a serialized top-level loop, not one inside a `for _ in range(1)` task: that
+    # costs a parallel launch, and Vulkan (lavapipe) loses counters such as num_voxels there
+    ti.loop_config(serialize=True)
+    for i in range(n):
+        if stage_ok[i] and overflow == 0:
+            key = stage_key[i]
+            b = brick_of(key)
+            brick = last_brick
+            if b[0] != last_b[0] or b[1] != last_b[1] or b[2] != last_b[2]:
+                s = voxel_hash(b) & mask
+                brick = -1
+                while brick == -1:
+                    si = ti.cast(s, ti.i32)
+                    if slot_brick[si] < 0:
+                        if num_bricks < max_bricks:
+                            brick = num_bricks
+                            num_bricks += 1
+                            slot_brick[si] = brick
+                            slot_key[si] = b
+                            brick_slot[brick] = si
+                            for c in range(BRICK_CELLS):
+                                cells[brick * BRICK_CELLS + c] = -1
+                            occupancy[2 * brick] = ti.u32(0)
+                            occupancy[2 * brick + 1] = ti.u32(0)
+                            brick_head[brick] = -1
                         else:
-                            overflow = 1
-                    if v >= 0:
-                        centre = (ti.cast(key, ti.f32) + 0.5) * voxel_m
-                        voxel_sum[v] += stage_p[i] - centre
-                        voxel_count[v] += 1
-        counts[None] = ivec3(num_voxels, num_bricks, overflow)
+                            brick = -2
+                    elif slot_key[si][0] == b[0] and slot_key[si][1] == b[1] \
+                            and slot_key[si][2] == b[2]:
+                        brick = slot_brick[si]
+                    s = (s + 1) & mask
+                last_b = b
+                last_brick = brick
+            if brick < 0:
+                overflow = 1
+            else:
+                local = cell_of(key)
+                cell = brick * BRICK_CELLS + local
+                v = cells[cell]
+                if v < 0:
+                    if num_voxels < max_voxels:
+                        v = num_voxels
+                        num_voxels += 1
+                        cells[cell] = v
+                        occupancy[2 * brick + (local >> 5)] |= ti.u32(1) << ti.cast(
+                            local & 31, ti.u32)
+                        voxel_key[v] = key
+                        if brick_head[brick] < 0:
+                            brick_head[brick] = v
+                        else:
+                            voxel_next[brick_tail[brick]] = v
+                        brick_tail[brick] = v
+                        voxel_next[v] = -1
+                        voxel_sum[v] = vec3(0.0)
+                        voxel_count[v] = 0
+                    else:
+                        overflow = 1
+                if v >= 0:
+                    centre = (ti.cast(key, ti.f32) + 0.5) * voxel_m
+                    voxel_sum[v] += stage_p[i] - centre
+                    voxel_count[v] += 1
+    counts[None] = ivec3(num_voxels, num_bricks, overflow)
 
 
 @ti.func
@@ -183,29 +195,32 @@ def finalize_voxels(voxel_m: ti.f32, counts: ti.template(), voxel_key: ti.templa
 
 @ti.kernel
 def downsample(points: ti.types.ndarray(), times: ti.types.ndarray(), n: ti.i32,
-               first_chunk: ti.i32, last_chunk: ti.i32, deskew: ti.i32, twist_w: vec3,
-               twist_v: vec3, t_first: ti.f32, t_step: ti.f32, min_range_m: ti.f32,
+               first_chunk: ti.i32, last_chunk: ti.i32, deskew: ti.i32, w_x: ti.f32, w_y: ti.f32,
+               w_z: ti.f32, v_x: ti.f32, v_y: ti.f32, v_z: ti.f32, t_first: ti.f32,
+               t_step: ti.f32, min_range_m: ti.f32,
                max_range_m: ti.f32, voxel_m: ti.f32, knot_R: ti.template(),
                knot_t: ti.template(), stage_p: ti.template(), stage_key: ti.template(),
                stage_ok: ti.template(), slot_key: ti.template(), slot_brick: ti.template(),
                brick_slot: ti.template(), cells: ti.template(), occupancy: ti.template(),
-               voxel_key: ti.template(), voxel_brick: ti.template(), voxel_sum: ti.template(),
+               voxel_key: ti.template(), voxel_sum: ti.template(),
                voxel_count: ti.template(), counts: ti.template(),
                out_pts: ti.template(), covariances: ti.template(), k: ti.i32,
-               min_neighbors: ti.i32, normal_variance: ti.f32, brick_start: ti.template(),
-               brick_count: ti.template(), brick_points: ti.template(),
+               min_neighbors: ti.i32, normal_variance: ti.f32, brick_head: ti.template(),
+               brick_tail: ti.template(), voxel_next: ti.template(),
                out_plane: ti.template()) -> ti.i32:
     """One chunk of a scan's points through the grid in one launch: free the previous scan's
     bricks (first chunk), stage, insert, and after the last chunk the voxel means, then (with
     `covariances`) their `plane_rows` into `out_plane`. Returns the voxel count, or -1 when a
-    voxel or brick did not fit (or, after the last chunk, the points do not fit `out_pts`)."""
+    voxel or brick did not fit (or, after the last chunk, the points do not fit `out_pts`).
+    The twist (w, v) comes as six scalars: a vector argument costs ~20 us more to launch."""
     if first_chunk:
         clear_grid(counts, brick_slot, slot_brick)
-    stage_points(points, times, n, deskew, twist_w, twist_v, t_first, t_step, min_range_m,
-                 max_range_m, 1.0 / voxel_m, knot_R, knot_t, stage_p, stage_key, stage_ok)
+    stage_points(points, times, n, deskew, vec3(w_x, w_y, w_z), vec3(v_x, v_y, v_z), t_first,
+                 t_step, min_range_m, max_range_m, 1.0 / voxel_m, knot_R, knot_t, stage_p,
+                 stage_key, stage_ok)
     insert_points(n, first_chunk, voxel_m, stage_p, stage_key, stage_ok, slot_key, slot_brick,
-                  brick_slot, cells, occupancy, voxel_key, voxel_brick, voxel_sum, voxel_count,
-                  counts)
+                  brick_slot, cells, occupancy, voxel_key, voxel_sum, voxel_count, counts,
+                  brick_head, brick_tail, voxel_next)
     if last_chunk:
         finalize_voxels(voxel_m, counts, voxel_key, voxel_sum, voxel_count, out_pts)
     c = counts[None]
@@ -213,9 +228,9 @@ def downsample(points: ti.types.ndarray(), times: ti.types.ndarray(), n: ti.i32,
     if ti.static(covariances):
         # a top-level loop over 0 points when there is nothing to do: a loop under an `if`
         # would run on one thread
-        plane_rows(ti.select(fits and last_chunk, c[0], 0), counts, k, min_neighbors,
-                   normal_variance, voxel_brick, voxel_key, out_pts, slot_key, slot_brick,
-                   cells, occupancy, brick_start, brick_count, brick_points, out_plane)
+        plane_rows(ti.select(fits and last_chunk, c[0], 0), k, min_neighbors, normal_variance,
+                   voxel_key, out_pts, slot_key, slot_brick, cells, occupancy, brick_head,
+                   voxel_next, out_plane)
     return ti.select(fits, c[0], -1)
 
 
@@ -234,121 +249,114 @@ def run_bits(first: ti.i32, last: ti.i32, width: ti.i32) -> ti.u32:
 
 
 @ti.func
-def gather(p: vec3, lo_key: ivec3, hi_key: ivec3, k: ti.i32, pts: ti.template(),
-           slot_key: ti.template(), slot_brick: ti.template(), cells: ti.template(),
-           occupancy: ti.template()):
-    """The k nearest points to p among the voxels [lo_key, hi_key] (a box), brick by brick,
-    unsorted (keep_nearest). Returns (how many, their indices).
+def box_bits(lo: ivec3, hi: ivec3, word: ti.i32) -> ti.u32:
+    """The bits of occupancy word `word` (x = 2 word: low 16 bits, 2 word + 1: high 16) that
+    lie in the box [lo, hi] of brick-local cells (clipped to the brick; may be empty)."""
+    first = ti.max(lo, 0)
+    last = ti.min(hi, 3)
+    yz = run_bits(first[1], last[1], 4) & (run_bits(first[2], last[2], 1) * ti.u32(0x1111))
+    x_lo = ti.select(first[0] <= 2 * word and 2 * word <= last[0], yz, ti.u32(0))
+    x_hi = ti.select(first[0] <= 2 * word + 1 and 2 * word + 1 <= last[0], yz, ti.u32(0))
+    return x_lo | (x_hi << 16)
 
-    Each brick's occupancy bits (cell x*16 + y*4 + z) masked by the box's cells give the
-    occupied cells directly, in the order of a loop over x, y, z: most cells of a box around
-    a surface point are empty, and skipping them is most of the search's time."""
+
+@ti.func
+def gather(p: vec3, key: ivec3, k: ti.i32, pts: ti.template(), slot_key: ti.template(),
+           slot_brick: ti.template(), cells: ti.template(), occupancy: ti.template()):
+    """The k nearest points to p among the 5x5x5 voxels around its voxel `key`, unsorted
+    (keep_nearest). Returns (how many, their indices).
+
+    The box always spans 2x2x2 bricks, looked up once. Each brick's occupancy bits (cell
+    x*16 + y*4 + z) masked by the box's cells give the occupied cells directly: most cells of
+    a box around a surface point are empty, and skipping them is most of the search. The
+    inner 3x3x3 voxels go first: they hold most of the nearest, so that few of the outer ones
+    replace a kept point (a replacement rescans the k kept)."""
     mask = ti.cast(slot_key.shape[0] - 1, ti.u32)
+    lo = brick_of(key - SEARCH)
+    bricks = ti.Vector.zero(ti.i32, 8)
+    for c in range(8):
+        bricks[c] = find_brick(lo + ivec3(c >> 2, (c >> 1) & 1, c & 1), slot_key, slot_brick,
+                               mask)
     dist = ti.Vector.zero(ti.f32, MAX_K)
     nbr = ti.Vector.zero(ti.i32, MAX_K)
-    lo = brick_of(lo_key)
-    hi = brick_of(hi_key)
     found = 0
     far = 0
-    for bx in range(lo[0], hi[0] + 1):
-        for by in range(lo[1], hi[1] + 1):
-            for bz in range(lo[2], hi[2] + 1):
-                b = ivec3(bx, by, bz)
-                brick = find_brick(b, slot_key, slot_brick, mask)
-                if brick >= 0:
-                    # the box's cells inside this brick, in brick-local coordinates
-                    first = ti.max(lo_key, b * 4) - b * 4
-                    last = ti.min(hi_key, b * 4 + 3) - b * 4
-                    yz = run_bits(first[1], last[1], 4) \
-                        & (run_bits(first[2], last[2], 1) * ti.u32(0x1111))
-                    for word in range(2):  # x = 2 word (low 16 bits), 2 word + 1 (high 16)
-                        x_lo = ti.select(first[0] <= 2 * word and 2 * word <= last[0],
-                                         yz, ti.u32(0))
-                        x_hi = ti.select(first[0] <= 2 * word + 1 and 2 * word + 1 <= last[0],
-                                         yz, ti.u32(0))
-                        bits = occupancy[2 * brick + word] & (x_lo | (x_hi << 16))
-                        while bits != 0:
-                            low = bits & (~bits + ti.u32(1))
-                            bits ^= low
-                            u = cells[brick * BRICK_CELLS + 32 * word + bit_index(low)]
-                            found, far, dist, nbr = keep_nearest(
-                                u, (pts[u] - p).norm_sqr(), k, found, far, dist, nbr)
+    far_d2 = -1.0
+    for ring in range(2):
+        for c in range(8):
+            brick = bricks[c]
+            if brick >= 0:
+                base = (lo + ivec3(c >> 2, (c >> 1) & 1, c & 1)) * 4
+                for word in range(2):
+                    inner = box_bits(key - 1 - base, key + 1 - base, word)
+                    bits = inner
+                    if ring == 1:
+                        bits = box_bits(key - SEARCH - base, key + SEARCH - base, word) & ~inner
+                    bits &= occupancy[2 * brick + word]
+                    while bits != 0:
+                        low = bits & (~bits + ti.u32(1))
+                        bits ^= low
+                        u = cells[brick * BRICK_CELLS + 32 * word + bit_index(low)]
+                        keep_nearest(u, (pts[u] - p).norm_sqr(), k, found, far, far_d2, dist,
+                                     nbr)
     return found, nbr
 
 
 @ti.func
-def brick_lists(num_voxels: ti.i32, counts: ti.template(), voxel_brick: ti.template(),
-                brick_start: ti.template(), brick_count: ti.template(),
-                brick_points: ti.template()):
-    """Each brick's points as one run of `brick_points` (a counting sort, in voxel order):
-    the wider neighbour search reads them instead of 64 cells per brick."""
-    for _ in range(1):  # one task: ordered passes
-        num_bricks = counts[None][1]
-        for b in range(num_bricks):
-            brick_count[b] = 0
-        for v in range(num_voxels):
-            brick_count[voxel_brick[v]] += 1
-        start = 0
-        for b in range(num_bricks):
-            brick_start[b] = start
-            start += brick_count[b]
-            brick_count[b] = 0
-        for v in range(num_voxels):
-            b = voxel_brick[v]
-            brick_points[brick_start[b] + brick_count[b]] = v
-            brick_count[b] += 1
-
-
-@ti.func
-def keep_nearest(u: ti.i32, d2: ti.f32, k: ti.i32, found: ti.i32, far: ti.i32, dist, nbr):
+def keep_nearest(u: ti.i32, d2: ti.f32, k: ti.i32, found: ti.template(), far: ti.template(),
+                 far_d2: ti.template(), dist: ti.template(), nbr: ti.template()):
     """Offer candidate u at squared distance d2 to the k nearest kept so far (unsorted: a
-    closer one replaces the farthest, ties keep the earlier; cheaper than sorting)."""
+    closer one replaces the farthest, ties keep the earlier; cheaper than sorting). The
+    arguments are updated in place (template: by reference; by value a call would copy both
+    arrays in and out, most of the search's time)."""
     if found < k:
         dist[found] = d2
         nbr[found] = u
-        if d2 > dist[far]:
+        if d2 > far_d2:
             far = found
+            far_d2 = d2
         found += 1
-    elif d2 < dist[far]:
+    elif d2 < far_d2:
         dist[far] = d2
         nbr[far] = u
-        for j in range(k):
-            if dist[j] > dist[far]:
-                far = j
-    return found, far, dist, nbr
+        far_d2 = d2
+        new_far = far
+        for j in range(k):  # branch-free: which candidate is kept is unpredictable
+            dj = dist[j]
+            new_far = ti.select(dj > far_d2, j, new_far)
+            far_d2 = ti.max(dj, far_d2)
+        far = new_far
 
 
 @ti.func
 def gather_bricks(p: vec3, key: ivec3, k: ti.i32, pts: ti.template(), slot_key: ti.template(),
-                  slot_brick: ti.template(), brick_start: ti.template(),
-                  brick_count: ti.template(), brick_points: ti.template()):
+                  slot_brick: ti.template(), brick_head: ti.template(),
+                  voxel_next: ti.template()):
     """The k nearest points to p in the 3x3x3 bricks around key's brick (see gather)."""
     mask = ti.cast(slot_key.shape[0] - 1, ti.u32)
     dist = ti.Vector.zero(ti.f32, MAX_K)
     nbr = ti.Vector.zero(ti.i32, MAX_K)
     found = 0
     far = 0
+    far_d2 = -1.0
     c = brick_of(key)
     for bx in range(c[0] - 1, c[0] + 2):
         for by in range(c[1] - 1, c[1] + 2):
             for bz in range(c[2] - 1, c[2] + 2):
                 brick = find_brick(ivec3(bx, by, bz), slot_key, slot_brick, mask)
                 if brick >= 0:
-                    first = brick_start[brick]
-                    for j in range(first, first + brick_count[brick]):
-                        u = brick_points[j]
-                        found, far, dist, nbr = keep_nearest(u, (pts[u] - p).norm_sqr(), k,
-                                                             found, far, dist, nbr)
+                    u = brick_head[brick]
+                    while u >= 0:
+                        keep_nearest(u, (pts[u] - p).norm_sqr(), k, found, far, far_d2, dist, nbr)
+                        u = voxel_next[u]
     return found, nbr
 
 
 @ti.func
-def plane_rows(num_voxels: ti.i32, counts: ti.template(), k: ti.i32, min_neighbors: ti.i32,
-               normal_variance: ti.f32, voxel_brick: ti.template(), voxel_key: ti.template(),
-               pts: ti.template(), slot_key: ti.template(), slot_brick: ti.template(),
-               cells: ti.template(), occupancy: ti.template(), brick_start: ti.template(),
-               brick_count: ti.template(), brick_points: ti.template(),
-               out_plane: ti.template()):
+def plane_rows(num_voxels: ti.i32, k: ti.i32, min_neighbors: ti.i32, normal_variance: ti.f32,
+               voxel_key: ti.template(), pts: ti.template(), slot_key: ti.template(),
+               slot_brick: ti.template(), cells: ti.template(), occupancy: ti.template(),
+               brick_head: ti.template(), voxel_next: ti.template(), out_plane: ti.template()):
     """Covariance of each point's k nearest points (itself included), plane-regularized:
     C = I - (1 - normal_variance) n nᵀ with n the normal, stored as (n, α=1,
     β=normal_variance-1, 0) (batch_gicp.plane_form's rows); the identity (α=1, β=0) with
@@ -358,15 +366,13 @@ def plane_rows(num_voxels: ti.i32, counts: ti.template(), k: ti.i32, min_neighbo
     within 2 voxels: nothing outside is closer); a point with fewer than `min_neighbors` there
     (a sparse surface) takes the k nearest in the 3x3x3 bricks (12x12x12 voxels) around its
     brick instead, so that it still gets a plane when one is within reach."""
-    brick_lists(num_voxels, counts, voxel_brick, brick_start, brick_count, brick_points)
     for v in range(num_voxels):
         key = voxel_key[v]
         p = pts[v]
-        found, nbr = gather(p, key - SEARCH, key + SEARCH, k, pts, slot_key, slot_brick, cells,
-                            occupancy)
+        found, nbr = gather(p, key, k, pts, slot_key, slot_brick, cells, occupancy)
         if found < min_neighbors:
-            found, nbr = gather_bricks(p, key, k, pts, slot_key, slot_brick, brick_start,
-                                       brick_count, brick_points)
+            found, nbr = gather_bricks(p, key, k, pts, slot_key, slot_brick, brick_head,
+                                       voxel_next)
         row = ti.Vector([1.0, 0.0, 0.0, 1.0, 0.0, 0.0], ti.f32)
         if found >= min_neighbors:
             mean = vec3(0.0)

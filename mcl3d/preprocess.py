@@ -168,10 +168,9 @@ class ScanGrid:
         self.cells = ti.field(ti.i32, max_voxels * 64)
         self.occupancy = ti.field(ti.u32, max_voxels * 2)  # 64 bits per brick: cells in use
         self.voxel_key = ti.Vector.field(3, ti.i32, max_voxels)
-        self.voxel_brick = ti.field(ti.i32, max_voxels)
-        self.brick_start = ti.field(ti.i32, max_voxels)
-        self.brick_count = ti.field(ti.i32, max_voxels)
-        self.brick_points = ti.field(ti.i32, max_voxels)
+        self.brick_head = ti.field(ti.i32, max_voxels)  # each brick's voxels: a linked list
+        self.brick_tail = ti.field(ti.i32, max_voxels)
+        self.voxel_next = ti.field(ti.i32, max_voxels)
         self.voxel_sum = ti.Vector.field(3, ti.f32, max_voxels)
         self.voxel_count = ti.field(ti.i32, max_voxels)
         self.counts = ti.Vector.field(3, ti.i32, ())  # voxels, bricks, overflow (device only)
@@ -207,6 +206,9 @@ class ScanGrid:
                 raise PointCloudError(f"need one time per point: {len(times)} times for "
                                       f"{len(pts)} points")
             tw = np.asarray(twist, np.float32).ravel()
+            if tw.shape != (6,):
+                raise PointCloudError(f"the twist must have 6 values (wx, wy, wz, vx, vy, vz), "
+                                      f"got {tw.size}")
             t_first = float(times.min()) if len(times) else 0.0
             t_step = max((float(times.max()) - t_first) / (DESKEW_KNOTS - 1), 1e-9) \
                 if len(times) else 1.0
@@ -222,13 +224,13 @@ class ScanGrid:
             count = scan_grid.downsample(
                 chunk.reshape(-1, 3) if n else np.zeros((1, 3), np.float32),
                 times[start:start + n] if use_deskew else times, n, int(start == 0),
-                int(start == starts[-1]), int(use_deskew), tw[:3], tw[3:], t_first, t_step,
+                int(start == starts[-1]), int(use_deskew), *tw.tolist(), t_first, t_step,
                 min_range_m, max_range, voxel_size_m, self.knot_R, self.knot_t, self.stage_p,
                 self.stage_key, self.stage_ok, self.slot_key, self.slot_brick, self.brick_slot,
-                self.cells, self.occupancy, self.voxel_key, self.voxel_brick, self.voxel_sum,
-                self.voxel_count, self.counts, out_pts, out_rows is not None, k_neighbors,
-                MIN_NEIGHBORS, PLANE_EIGENVALUES[0], self.brick_start, self.brick_count,
-                self.brick_points, self.brick_points if out_rows is None else out_rows)
+                self.cells, self.occupancy, self.voxel_key, self.voxel_sum, self.voxel_count,
+                self.counts, out_pts, out_rows is not None, k_neighbors, MIN_NEIGHBORS,
+                PLANE_EIGENVALUES[0], self.brick_head, self.brick_tail, self.voxel_next,
+                self.voxel_next if out_rows is None else out_rows)
         if count < 0 or count > min(self.max_voxels, out_pts.shape[0]):
             self.num_voxels = 0
             return None

@@ -41,6 +41,33 @@ def test_covariance_kernel_matches_numpy(ti_runtime):
         np.diag([1.0, 1.0, 1e-3]), (300, 1, 1)), atol=1e-5)
 
 
+def test_normals_of_given_scatters_match_numpy(ti_runtime):
+    """The kernel's normal (closed form, Jacobi where the two smallest eigenvalues are close)
+    for scatters with known spectra: six points ±sqrt(3 λ) u per eigenpair (λ, u)."""
+    from scipy.spatial.transform import Rotation
+
+    from mcl3d.kernels.covariance import plane_covariances
+
+    spectra = [(0.0, 1.0, 1.0), (1e-4, 0.3, 1.0), (0.02, 0.5, 0.6), (1e-3, 2e-3, 1.0),
+               (0.0, 1e-7, 1.0), (0.0, 0.0, 1.0), (1.0, 1.0, 1.0)]
+    R = Rotation.random(8 * len(spectra), random_state=4).as_matrix()
+    lam = np.repeat(np.array(spectra), 8, axis=0) * np.geomspace(1e-4, 1e2, len(R))[:, None]
+    axes = np.sqrt(3.0 * lam)[:, :, None] * R.transpose(0, 2, 1)  # rows: sqrt(3 λ_j) u_j
+    pts = (np.concatenate([axes, -axes], axis=1) + 20.0).reshape(-1, 3)
+    out = np.empty((len(R), 3, 3), np.float32)
+    plane_covariances(pts.astype(np.float32), np.arange(len(pts), dtype=np.int32).reshape(-1, 6),
+                      np.full(len(R), 6, np.int32), len(R), 5, 1e-3, out)
+    normal = np.linalg.eigh(out.astype(np.float64))[1][:, :, 0]
+    cos = np.abs(np.einsum("ni,ni->n", normal, R[:, :, 0]))
+    line = np.repeat([s[1] < 1e-6 * s[2] for s in spectra], 8)  # f32 cannot tell λ1 from λ2
+    distinct = np.repeat([s[0] < s[1] for s in spectra], 8) & ~line
+    assert cos[distinct].min() > 1.0 - 1e-5
+    # a line: any normal across it will do
+    assert np.abs(np.einsum("ni,ni->n", normal, R[:, :, 2]))[line].max() < 1e-3
+    np.testing.assert_allclose(np.linalg.eigvalsh(out.astype(np.float64)),
+                               np.tile([1e-3, 1.0, 1.0], (len(R), 1)), atol=1e-5)
+
+
 def test_covariance_of_a_plane_is_a_thin_disc_along_it(ti_runtime):
     rng = np.random.default_rng(0)
     uv = rng.uniform(-1, 1, (400, 2))

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mcl3d.errors import ConfigError
+from mcl3d.errors import ConfigError, PointCloudError
 from mcl3d.preprocess import (
     ScanGrid,
     deskew,
@@ -92,13 +92,14 @@ def test_covariances_match_numpy_on_surfaces_and_sparse_points(grid):
     # a sparse plane (~2 points/m²): too few within 2 voxels, a plane within the bricks
     thin = np.c_[rng.uniform(-3, 3, (80, 2)) + np.array([0.0, 8.0]), np.full(80, 2.9)]
     pts = np.vstack([wall, floor, lone, thin]) + 0.002 * rng.normal(size=(920, 3))
-    got, rows = run(grid, pts, 0.2)
-    ref = reference_covariances(got.astype(np.float64), 0.2, 10)
-    np.testing.assert_allclose(plane_rows_to_covs(rows), ref, atol=2e-3)
-    identity = (rows[:, 4] == 0)
-    assert identity.any() and not identity.all()
+    for k in (5, 10, 32):  # one grid: a new one would compile the kernel again
+        got, rows = run(grid, pts, 0.2, k=k)
+        ref = reference_covariances(got.astype(np.float64), 0.2, k)
+        np.testing.assert_allclose(plane_rows_to_covs(rows), ref, atol=2e-3)
+        identity = (rows[:, 4] == 0)
+        assert identity.any() and not identity.all()
     # the same bits on every run (fixed-order sums, no float atomics)
-    again_pts, again_rows = run(grid, pts, 0.2)
+    again_pts, again_rows = run(grid, pts, 0.2, k=k)
     assert np.array_equal(got, again_pts) and np.array_equal(rows, again_rows)
 
 
@@ -114,5 +115,7 @@ def test_too_many_voxels_give_none_and_bad_parameters_raise(grid, ti_runtime):
     assert grid.downsample(pts[:100], 0.05, small, out_rows=grid.out_rows) is None
     with pytest.raises(ConfigError, match="k_neighbors"):
         grid.downsample(pts, 0.2, grid.out_pts, out_rows=grid.out_rows, k_neighbors=40)
+    with pytest.raises(PointCloudError, match="twist"):
+        grid.downsample(pts, 0.2, grid.out_pts, times_s=np.zeros(len(pts)), twist=np.zeros(5))
     n = grid.downsample(np.zeros((0, 3)), 0.5, grid.out_pts)
     assert n == 0
