@@ -16,9 +16,9 @@ triangles: R C_A Rᵀ is one 6x6 product with a per-row basis, M an adjugate inv
 two symmetric blocks of H_c take 6 sums each. Source covariances of the plane form
 C_A = αI + β nnᵀ (every plane-regularized or identity covariance; see batch_gicp.plane_form)
 travel as (n, α, β) instead, and R C_A Rᵀ = αI + β (Rn)(Rn)ᵀ costs 15 multiply-adds instead of
-36. On cpu the per-point loops are branch-free so that LLVM vectorizes them: about 8 ns of
-cpu time per correspondence (10,000 poses x 512 points: ~42 cpu-ms per iteration, from 52
-before the plane form and the home-slot split described in `linearize`).
+36. On cpu the per-point loops are branch-free so that LLVM vectorizes them: about 7 ns of
+cpu time per correspondence (10,000 poses x 512 points: ~35 cpu-ms per iteration, from 52
+before the plane form and the slot passes described in `linearize`).
 
 `linearize` runs over (row, chunk of source points), so one pose uses many threads and
 100,000 poses use them all the same way; each task stores its own sums (a batch with one row
@@ -34,7 +34,7 @@ the scan's overlap with the keyframe maps in the same launch.
 import taichi as ti
 
 from mcl3d.kernels.se3 import pose_compose, pose_retract, quat_to_mat
-from mcl3d.kernels.voxel_hash import EMPTY, lookup, lookup_from, probe_slot
+from mcl3d.kernels.voxel_hash import EMPTY_KEY, lookup, lookup_from, pack_key, probe_slot, same_key
 
 vec3 = ti.math.vec3
 vec6 = ti.types.vector(6, ti.f32)
@@ -116,11 +116,6 @@ def sym_inverse(c: vec6, hit: ti.i32) -> vec6:
              c[0] * c[5] - c[2] * c[2], c[1] * c[2] - c[0] * c[4], c[0] * c[3] - c[1] * c[1])
     det = c[0] * m[0] + c[1] * m[1] + c[2] * m[2]
     return m * (ti.select(hit, 1.0, 0.0) / ti.select(hit, det, 1.0))
-
-
-@ti.func
-def key_matches(key: ti.math.ivec3, cell: ti.math.ivec3) -> ti.i32:
-    return (key[0] == cell[0]) & (key[1] == cell[1]) & (key[2] == cell[2])
 
 
 @ti.func
@@ -213,12 +208,14 @@ def linearize(src_pts: ti.template(), src_cov: ti.template(), row_group: ti.temp
             first = row_start[r] + begin
             count = ti.min(chunk, row_count[r] - begin)
             for block in range((count + LOOKAHEAD - 1) // LOOKAHEAD):
-                # three loops per block of points (the pool is padded by LOOKAHEAD): the home
-                # slots (arithmetic only), then the math with the key check against the home
-                # slot's key, read with its mean and covariance (one cache line; a miss or
-                # another key weighs 0), both branch-free so that they vectorize; last the rare
-                # points whose home slot holds another key probe on. Computing the slots
-                # apart, before any table read, is what keeps the reads cheap (~15% faster).
+                # loops per block of points (the pool is padded by LOOKAHEAD): the home slots
+                # (arithmetic only); the key check against each home slot's key (1: found,
+                # 0: a miss or padding, 2: another key is there); the rare 2s probe on for
+                # their slot; then the math, its mean and covariance read from the slot's
+                # cache line (a miss weighs 0). All but the probing are branch-free so that
+                # they vectorize. Computing the slots apart, before any table read, keeps the
+                # reads cheap (~15%); settling every slot before the math keeps the probing
+                # points in the vectorized math (at half load, a third of the time).
                 slots = ti.Vector.zero(ti.i32, LOOKAHEAD)
                 qs = ti.Matrix.zero(ti.f32, 3, LOOKAHEAD)  # R μ_A of each point
                 for j in range(LOOKAHEAD):
@@ -227,21 +224,28 @@ def linearize(src_pts: ti.template(), src_cov: ti.template(), row_group: ti.temp
                         qs[a, j] = q[a]
                     slots[j] = probe_slot(ti.cast(ti.floor((q + t) * inv_res), ti.i32), 0, m,
                                           buckets)
-                probe_on = ti.Vector.zero(ti.i32, LOOKAHEAD)
+                found = ti.Vector.zero(ti.i32, LOOKAHEAD)
                 num_probe_on = 0
                 for j in range(LOOKAHEAD):
-                    kk = block * LOOKAHEAD + j
-                    k = first + kk
+                    q = vec3(qs[0, j], qs[1, j], qs[2, j])
+                    key = vox[slots[j]].key
+                    f = same_key(key, pack_key(ti.cast(ti.floor((q + t) * inv_res), ti.i32)))
+                    on = (block * LOOKAHEAD + j < count) & (key[1] != EMPTY_KEY)
+                    found[j] = ti.select(on & f, 1, ti.select(on, 2, 0))
+                    num_probe_on += ti.select(on & ~f, 1, 0)
+                if num_probe_on > 0:
+                    for j in range(LOOKAHEAD):
+                        if found[j] == 2:
+                            q = vec3(qs[0, j], qs[1, j], qs[2, j])
+                            s = lookup_from(vox, ti.cast(ti.floor((q + t) * inv_res), ti.i32), 1,
+                                            m, buckets, max_probes)
+                            found[j] = ti.select(s >= 0, 1, 0)
+                            slots[j] = ti.select(s >= 0, s, slots[j])
+                for j in range(LOOKAHEAD):
+                    k = first + block * LOOKAHEAD + j
                     s = slots[j]
                     q = vec3(qs[0, j], qs[1, j], qs[2, j])
-                    key = vox[s].key
-                    found = key_matches(key, ti.cast(ti.floor((q + t) * inv_res), ti.i32))
-                    occupied = vox[s].state != EMPTY
-                    valid = kk < count
-                    on = valid & occupied & ~found
-                    probe_on[j] = ti.select(on, 1, 0)
-                    num_probe_on += ti.select(on, 1, 0)
-                    hit = valid & occupied & found
+                    hit = found[j]
                     rn = vec3(0.0)
                     if ti.static(plane_cov):
                         rn = R @ vec3(src_cov[k][0], src_cov[k][1], src_cov[k][2])
@@ -255,29 +259,6 @@ def linearize(src_pts: ti.template(), src_cov: ti.template(), row_group: ti.temp
                     b_t += bt
                     err += ee
                     n += ti.select(hit, 1, 0)
-                if num_probe_on > 0:
-                    for j in range(LOOKAHEAD):
-                        if probe_on[j]:
-                            k = first + block * LOOKAHEAD + j
-                            q = R @ src_pts[k]
-                            s = lookup_from(vox, ti.cast(ti.floor((q + t) * inv_res), ti.i32), 1,
-                                            m, buckets, max_probes)
-                            hit = ti.select(s >= 0, 1, 0)
-                            rn = vec3(0.0)
-                            if ti.static(plane_cov):
-                                rn = R @ vec3(src_cov[k][0], src_cov[k][1], src_cov[k][2])
-                                hit &= faces_map(q + t, rn, src_pts[k], src_cov[k], facing_cos)
-                            if hit:
-                                rr, tr, tt, br, bt, ee = point_terms(
-                                    B, q, t, vox[s].mean, vox[s].cov, src_cov[k], rn, True,
-                                    plane_cov)
-                                S_rr += rr
-                                S_tr += tr
-                                S_tt += tt
-                                b_r += br
-                                b_t += bt
-                                err += ee
-                                n += 1
             if n > 0:
                 H_r, b_r6 = to_right_perturbation(R, S_rr, S_tr, S_tt, b_r, b_t)
                 acc_H[slot] = H_r
@@ -293,17 +274,27 @@ def reduce_tasks(num_rows: ti.i32, num_chunks: ti.i32, row_group: ti.template(),
                  acc_b: ti.template(), acc_e: ti.template(), acc_n: ti.template(),
                  one_row_per_group: ti.template()):
     """Add each running group's task sums in row, then chunk order (see linearize): in
-    parallel over rows when every group has one row, else in one ordered pass."""
+    parallel over rows when every group has one row (summed in registers, stored once: with
+    `acc[g] +=` in the chunk loop, Vulkan on lavapipe kept only some chunks), else in one
+    ordered pass."""
     if ti.static(one_row_per_group):
         for r in range(num_rows):
             g = row_group[r]
             if status[g] == RUNNING:
+                H = acc_H[g]
+                b = acc_b[g]
+                e = acc_e[g]
+                n = acc_n[g]
                 for c in range(num_chunks):
                     k = r * num_chunks + c
-                    acc_H[g] += task_H[k]
-                    acc_b[g] += task_b[k]
-                    acc_e[g] += task_e[k]
-                    acc_n[g] += task_n[k]
+                    H += task_H[k]
+                    b += task_b[k]
+                    e += task_e[k]
+                    n += task_n[k]
+                acc_H[g] = H
+                acc_b[g] = b
+                acc_e[g] = e
+                acc_n[g] = n
     else:
         ti.loop_config(serialize=True)
         for k in range(num_rows * num_chunks):
@@ -552,7 +543,6 @@ def upload_problem(rows_i: ti.types.ndarray(), rows_f: ti.types.ndarray(), num_r
 
 
 RESULT_COLUMNS = 54  # q (4), t (3), H (36), b (6), error, inliers, iterations, status, hits
-MAX_OVERLAP_MAPS = 64  # maps one overlap query may list
 
 
 @ti.kernel
@@ -583,36 +573,23 @@ def download_results(num_groups: ti.i32, q_cur: ti.template(), t_cur: ti.templat
         out[g, 50] = ti.cast(best_n[g], ti.f32)
         out[g, 51] = ti.cast(iters[g], ti.f32)
         out[g, 52] = ti.cast(status[g], ti.f32)
-        hits = 0
-        if ti.static(overlap):
-            poses = ti.Vector.zero(ti.f32, MAX_OVERLAP_MAPS * 12)  # R (row major), t per query
-            R_g = quat_to_mat(q_cur[g])
-            for k in range(num_queries):
-                R_left = ti.math.mat3(0.0)
-                t_left = vec3(0.0)
+        out[g, 53] = 0.0
+    if ti.static(overlap):
+        # over (group, point) pairs, so that one pose's count spreads over GPU threads too
+        # (lavapipe lost lookups once one thread had made a few thousand)
+        ti.loop_config(serialize=serial)
+        for g, i in ti.ndrange(num_groups, num_points):
+            x_g = quat_to_mat(q_cur[g]) @ src_pts[i] + t_cur[g]
+            hit = 0
+            k = 0
+            while k < num_queries and hit == 0:  # the likeliest map first: a hit ends it
+                m = ti.cast(queries[k, 0], ti.i32)
+                x = vec3(queries[k, 10], queries[k, 11], queries[k, 12])
                 for a in ti.static(range(3)):
-                    t_left[a] = queries[k, 10 + a]
                     for b in ti.static(range(3)):
-                        R_left[a, b] = queries[k, 1 + 3 * a + b]
-                R = R_left @ R_g
-                t = R_left @ t_cur[g] + t_left
-                for a in ti.static(range(3)):
-                    poses[12 * k + 9 + a] = t[a]
-                    for b in ti.static(range(3)):
-                        poses[12 * k + 3 * a + b] = R[a, b]
-            for i in range(num_points):
-                hit = 0
-                p = src_pts[i]
-                for k in range(num_queries):
-                    m = ti.cast(queries[k, 0], ti.i32)
-                    o = 12 * k
-                    x = vec3(poses[o] * p[0] + poses[o + 1] * p[1] + poses[o + 2] * p[2],
-                             poses[o + 3] * p[0] + poses[o + 4] * p[1] + poses[o + 5] * p[2],
-                             poses[o + 6] * p[0] + poses[o + 7] * p[1] + poses[o + 8] * p[2]) \
-                        + vec3(poses[o + 9], poses[o + 10], poses[o + 11])
-                    if lookup(vox, ti.cast(ti.floor(x / res[m]), ti.i32), m, buckets,
-                              max_probes) >= 0:
-                        hit = 1
-                        break
-                hits += hit
-        out[g, 53] = ti.cast(hits, ti.f32)
+                        x[a] += queries[k, 1 + 3 * a + b] * x_g[b]
+                if lookup(vox, ti.cast(ti.floor(x / res[m]), ti.i32), m, buckets,
+                          max_probes) >= 0:
+                    hit = 1
+                k += 1
+            out[g, 53] += ti.cast(hit, ti.f32)  # exact: counts stay below 2^24

@@ -1,7 +1,11 @@
 """Gaussian voxel maps in one open-addressing hash table made of plain fields.
 
-Lookups read one AoS struct field `vox` (key, state, mean, cov: 64 bytes, so one probe
-touches one cache line); the insertion-only sums live in separate fields.
+Lookups read one AoS struct field `vox` (key, mean, cov, count, claim: 64 bytes, so one probe
+touches one cache line); the insertion-only sums live in separate fields. A key is the voxel's
+three coordinates packed into one i64 (21 bits each, cells within ±2^20 voxels of the map's
+origin: ±262 km at 0.25 m), so that a lookup reads and compares one integer, and EMPTY_KEY
+marks a free slot: no separate state to read (the batched GICP's gathers are what its cost is
+made of).
 
 The table holds `max_maps` independent maps, each a region of `buckets` (a power of two)
 slots: slot `m * buckets + (hash(ix, iy, iz) + probe) & (buckets - 1)`. A voxel keeps the sum
@@ -21,13 +25,18 @@ import taichi as ti
 from mcl3d.kernels.se3 import quat_to_mat
 
 vec3 = ti.math.vec3
+ivec2 = ti.math.ivec2
 ivec3 = ti.math.ivec3
 mat3 = ti.math.mat3
 
-EMPTY = 0
-OCCUPIED = 1
+KEY_BITS = 21  # per coordinate; two i32 words hold 63 bits, keeping the lookup loop in i32
+KEY_BIAS = 1 << (KEY_BITS - 1)
+KEY_MASK = (1 << KEY_BITS) - 1
+LOW_BITS = 32 - KEY_BITS  # bits of y in the low word
+EMPTY_KEY = -1  # high word of a free slot (a stored key's high word is >= 0)
+OUTSIDE_KEY = -2  # high word of a cell beyond ±KEY_BIAS voxels: never stored, never found
 
-Voxel = ti.types.struct(key=ivec3, state=ti.i32, mean=vec3, cov=mat3)
+Voxel = ti.types.struct(key=ivec2, mean=vec3, cov=mat3, count=ti.i32, claim=ti.i32)
 
 
 @ti.func
@@ -51,8 +60,29 @@ def voxel_hash(c: ivec3) -> ti.u32:
 
 
 @ti.func
-def same_key(a: ivec3, b: ivec3) -> ti.i32:
-    return a[0] == b[0] and a[1] == b[1] and a[2] == b[2]
+def pack_key(c: ivec3) -> ivec2:
+    """The cell's coordinates in two i32 words (low: z and the low bits of y; high: the rest
+    of y and x), or high word OUTSIDE_KEY beyond ±KEY_BIAS voxels. In u32 arithmetic so that
+    the shifts are logical."""
+    u = ti.cast(c + KEY_BIAS, ti.u32)
+    inside = (u[0] <= KEY_MASK) & (u[1] <= KEY_MASK) & (u[2] <= KEY_MASK)
+    low = u[2] | (u[1] << KEY_BITS)
+    high = (u[1] >> LOW_BITS) | (u[0] << (KEY_BITS - LOW_BITS))
+    return ivec2(ti.cast(low, ti.i32), ti.select(inside, ti.cast(high, ti.i32), OUTSIDE_KEY))
+
+
+@ti.func
+def unpack_key(key: ivec2) -> ivec3:
+    low = ti.cast(key[0], ti.u32)
+    high = ti.cast(key[1], ti.u32)
+    u = ti.Vector([high >> (KEY_BITS - LOW_BITS),
+                   (low >> KEY_BITS) | ((high << LOW_BITS) & KEY_MASK), low & KEY_MASK], ti.u32)
+    return ti.cast(u, ti.i32) - KEY_BIAS
+
+
+@ti.func
+def same_key(a: ivec2, b: ivec2) -> ti.i32:
+    return (a[0] == b[0]) & (a[1] == b[1])
 
 
 @ti.func
@@ -67,11 +97,13 @@ def lookup_from(vox: ti.template(), c: ivec3, first: ti.i32, map_id: ti.i32, buc
                 max_probes: ti.i32) -> ti.i32:
     """Slot of voxel `c` in map `map_id` probing from probe `first` on, or -1 when absent."""
     found = -1
+    key = pack_key(c)
     for probe in range(first, max_probes):
         s = probe_slot(c, probe, map_id, buckets)
-        if vox[s].state == EMPTY:
+        k = vox[s].key
+        if k[1] == EMPTY_KEY:
             break
-        if same_key(vox[s].key, c):
+        if same_key(k, key):
             found = s
             break
     return found
@@ -85,12 +117,12 @@ def lookup(vox: ti.template(), c: ivec3, map_id: ti.i32, buckets: ti.i32,
 
 
 @ti.kernel
-def clear_region(vox: ti.template(), claim: ti.template(), count: ti.template(),
-                 vsum: ti.template(), vsumcov: ti.template(), begin: ti.i32, end: ti.i32):
+def clear_region(vox: ti.template(), vsum: ti.template(), vsumcov: ti.template(), begin: ti.i32,
+                 end: ti.i32):
     for s in range(begin, end):
-        vox[s].state = EMPTY
-        claim[s] = -1
-        count[s] = 0
+        vox[s].key = ivec2(0, EMPTY_KEY)
+        vox[s].claim = -1
+        vox[s].count = 0
         vsum[s] = vec3(0.0)
         vsumcov[s] = mat3(0.0)
 
@@ -99,7 +131,8 @@ def clear_region(vox: ti.template(), claim: ti.template(), count: ti.template(),
 def begin_insert(pts: ti.template(), covs: ti.template(), n: ti.i32, T: ti.math.mat4,
                  res: ti.f32, coord: ti.template(), probe: ti.template(),
                  slot: ti.template()):
-    """Transform the staged points (and covariances) into the map frame; reset probing."""
+    """Transform the staged points (and covariances) into the map frame; reset probing (a
+    point beyond the packable cells is lost at once)."""
     R = mat3([[T[0, 0], T[0, 1], T[0, 2]], [T[1, 0], T[1, 1], T[1, 2]],
               [T[2, 0], T[2, 1], T[2, 2]]])
     t = vec3(T[0, 3], T[1, 3], T[2, 3])
@@ -109,44 +142,44 @@ def begin_insert(pts: ti.template(), covs: ti.template(), n: ti.i32, T: ti.math.
         covs[i] = R @ covs[i] @ R.transpose()
         coord[i] = voxel_coord(p, res)
         probe[i] = 0
-        slot[i] = -1
+        slot[i] = ti.select(pack_key(coord[i])[1] == OUTSIDE_KEY, -2, -1)
 
 
 @ti.kernel
 def claim_slots(coord: ti.template(), probe: ti.template(), slot: ti.template(), n: ti.i32,
-                map_id: ti.i32, buckets: ti.i32, vox: ti.template(), claim: ti.template()):
+                map_id: ti.i32, buckets: ti.i32, vox: ti.template()):
     for i in range(n):
         if slot[i] == -1:
             s = probe_slot(coord[i], probe[i], map_id, buckets)
-            if vox[s].state == EMPTY:
-                ti.atomic_max(claim[s], i)
+            if vox[s].key[1] == EMPTY_KEY:
+                ti.atomic_max(vox[s].claim, i)
 
 
 @ti.kernel
 def commit_slots(coord: ti.template(), probe: ti.template(), slot: ti.template(), n: ti.i32,
-                 map_id: ti.i32, buckets: ti.i32, vox: ti.template(), claim: ti.template()):
+                 map_id: ti.i32, buckets: ti.i32, vox: ti.template()):
     for i in range(n):
         if slot[i] == -1:
             s = probe_slot(coord[i], probe[i], map_id, buckets)
-            if claim[s] == i:
-                vox[s].key = coord[i]
-                vox[s].state = OCCUPIED
+            if vox[s].claim == i:
+                vox[s].key = pack_key(coord[i])
 
 
 @ti.kernel
 def resolve_slots(coord: ti.template(), probe: ti.template(), slot: ti.template(), n: ti.i32,
-                  map_id: ti.i32, buckets: ti.i32, vox: ti.template(), claim: ti.template(),
+                  map_id: ti.i32, buckets: ti.i32, vox: ti.template(),
                   max_probes: ti.i32) -> ti.i32:
     """Settle the points whose key is in their probe slot; the rest probe on. Returns how
-    many are still pending (-1 marks a point out of probes: the map is full)."""
+    many are still pending (-2 marks a point out of probes: the map is full)."""
     pending = 0
     for i in range(n):
         if slot[i] == -1:
             s = probe_slot(coord[i], probe[i], map_id, buckets)
-            if claim[s] == i:
-                claim[s] = -1
-            if vox[s].state == OCCUPIED:
-                if same_key(vox[s].key, coord[i]):
+            if vox[s].claim == i:
+                vox[s].claim = -1
+            key = vox[s].key
+            if key[1] != EMPTY_KEY:
+                if same_key(key, pack_key(coord[i])):
                     slot[i] = s
                 else:
                     probe[i] += 1
@@ -161,7 +194,7 @@ def resolve_slots(coord: ti.template(), probe: ti.template(), slot: ti.template(
 
 @ti.kernel
 def accumulate(pts: ti.template(), covs: ti.template(), slot: ti.template(), n: ti.i32,
-               res: ti.f32, vox: ti.template(), count: ti.template(), vsum: ti.template(),
+               res: ti.f32, vox: ti.template(), vsum: ti.template(),
                vsumcov: ti.template()) -> ti.i32:
     """Add the settled points to their voxels; returns how many points could not be placed.
 
@@ -173,24 +206,25 @@ def accumulate(pts: ti.template(), covs: ti.template(), slot: ti.template(), n: 
     for i in range(n):
         s = slot[i]
         if s >= 0:
-            centre = (ti.cast(vox[s].key, ti.f32) + 0.5) * res
+            centre = (ti.cast(unpack_key(vox[s].key), ti.f32) + 0.5) * res
             vsum[s] += pts[i] - centre
             vsumcov[s] += covs[i]
-            count[s] += 1
+            vox[s].count += 1
         else:
             lost += 1
     return lost
 
 
 @ti.kernel
-def finalize(vox: ti.template(), count: ti.template(), vsum: ti.template(),
-             vsumcov: ti.template(), res: ti.f32, begin: ti.i32, end: ti.i32) -> ti.i32:
+def finalize(vox: ti.template(), vsum: ti.template(), vsumcov: ti.template(), res: ti.f32,
+             begin: ti.i32, end: ti.i32) -> ti.i32:
     """Mean and averaged covariance of every voxel of one map; returns its voxel count."""
     voxels = 0
     for s in range(begin, end):
-        if vox[s].state == OCCUPIED and count[s] > 0:
-            inv = 1.0 / ti.cast(count[s], ti.f32)
-            vox[s].mean = (ti.cast(vox[s].key, ti.f32) + 0.5) * res + vsum[s] * inv
+        if vox[s].key[1] != EMPTY_KEY and vox[s].count > 0:
+            inv = 1.0 / ti.cast(vox[s].count, ti.f32)
+            vox[s].mean = (ti.cast(unpack_key(vox[s].key), ti.f32) + 0.5) * res \
+                + vsum[s] * inv
             vox[s].cov = vsumcov[s] * inv
             voxels += 1
     return voxels
@@ -219,12 +253,11 @@ def count_hits(pts: ti.template(), n: ti.i32, queries: ti.types.ndarray(), num_m
 
 
 @ti.kernel
-def gather_voxels(vox: ti.template(), count: ti.template(), begin: ti.i32, end: ti.i32,
-                  out_mean: ti.types.ndarray(), out_cov: ti.types.ndarray(),
-                  counter: ti.template()):
+def gather_voxels(vox: ti.template(), begin: ti.i32, end: ti.i32, out_mean: ti.types.ndarray(),
+                  out_cov: ti.types.ndarray(), counter: ti.template()):
     """Copy one map's voxels (any order) into ndarrays, for export and tests."""
     for s in range(begin, end):
-        if vox[s].state == OCCUPIED and count[s] > 0:
+        if vox[s].key[1] != EMPTY_KEY and vox[s].count > 0:
             j = ti.atomic_add(counter[None], 1)
             for a in ti.static(range(3)):
                 out_mean[j, a] = vox[s].mean[a]

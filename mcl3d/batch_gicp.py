@@ -227,7 +227,7 @@ class BatchGicp:
                             self.row_map, self.row_start, self.row_count, self.row_q, self.row_t,
                             self.q_cand, self.t_cand, lm_lambda, self.q_cur, self.t_cur,
                             self.lam, self.status, self.iters, self.acc_H, self.acc_b,
-                            self.acc_e, self.acc_n, self.best_n, G < SERIAL_GROUPS)
+                            self.acc_e, self.acc_n, self.best_n, self._serial_groups(G))
         self._started(G, R, int(count.max()), one_row_per_group=len(np.unique(row_group)) == R)
         return G
 
@@ -244,7 +244,7 @@ class BatchGicp:
         gicp.reset_groups(num_groups, lm_lambda, self.q_cur, self.t_cur, self.q_cand,
                           self.t_cand, self.lam, self.status, self.iters, self.acc_H,
                           self.acc_b, self.acc_e, self.acc_n, self.best_n,
-                          num_groups < SERIAL_GROUPS)
+                          self._serial_groups(num_groups))
         self._started(num_groups, num_rows, max_row_points, one_row_per_group)
 
     def _started(self, num_groups: int, num_rows: int, max_row_points: int,
@@ -288,6 +288,12 @@ class BatchGicp:
                             self.best_b, self.best_e, self.best_n,
                             self._serial(),
                             SURFACE_VALIDATION_COS if validate_surfaces else 2.0)
+
+    def _serial_groups(self, num_groups: int) -> bool:
+        """Few poses on cpu: their per-pose loops on the calling thread. Never on a GPU, where
+        one thread is slow, and where lavapipe's loop limiter cut a long serial overlap count
+        short."""
+        return num_groups < SERIAL_GROUPS and self.maps.runtime.backend == "cpu"
 
     def _serial(self) -> bool:
         """Few correspondences: the whole iteration on the calling thread (see gicp.linearize)."""
@@ -334,9 +340,8 @@ class BatchGicp:
         if overlap_maps is not None:
             ids = np.asarray(overlap_maps, np.int64).ravel()
             T_left = np.asarray(overlap_T_left, np.float64).reshape(-1, 4, 4)
-            if len(ids) != len(T_left) or not 1 <= len(ids) <= gicp.MAX_OVERLAP_MAPS:
-                raise ConfigError(f"overlap needs one left pose per map and 1.."
-                                  f"{gicp.MAX_OVERLAP_MAPS} maps")
+            if len(ids) != len(T_left) or len(ids) == 0:
+                raise ConfigError("overlap needs one left pose per map and at least one map")
             if ids.min() < 0 or ids.max() >= maps.max_maps or \
                     min(maps.voxel_size(int(m)) for m in ids) <= 0:
                 raise ConfigError("overlap lists a map that does not exist or was never filled")
@@ -349,7 +354,7 @@ class BatchGicp:
                               self.best_n, self.iters, self.status, self.src_pts,
                               self.num_source if num_queries else 0, queries, num_queries,
                               maps.vox, maps.res, maps.buckets, maps.max_probes, out,
-                              G < SERIAL_GROUPS, num_queries > 0)
+                              self._serial_groups(G), num_queries > 0)
         out = out.astype(np.float64)
         return BatchResult(
             T=se3(quat_to_rot(out[:, :4]), out[:, 4:7]),

@@ -66,8 +66,6 @@ class GaussianVoxelMaps:
         from mcl3d.kernels.voxel_hash import Voxel
 
         self.vox = Voxel.field(shape=slots, layout=ti.Layout.AOS)
-        self.claim = ti.field(ti.i32, slots)
-        self.count = ti.field(ti.i32, slots)
         self.vsum = ti.Vector.field(3, ti.f32, slots)
         self.vsumcov = ti.Matrix.field(3, 3, ti.f32, slots)
         self.res = ti.field(ti.f32, max_maps)
@@ -81,8 +79,7 @@ class GaussianVoxelMaps:
         self._num_voxels = [0] * max_maps
         from mcl3d.kernels import voxel_hash
 
-        voxel_hash.clear_region(self.vox, self.claim, self.count, self.vsum, self.vsumcov,
-                                0, slots)
+        voxel_hash.clear_region(self.vox, self.vsum, self.vsumcov, 0, slots)
 
     def _region(self, map_id: int) -> tuple[int, int]:
         if not 0 <= map_id < self.max_maps:
@@ -104,8 +101,7 @@ class GaussianVoxelMaps:
         begin, end = self._region(map_id)
         if not np.isfinite(voxel_size_m) or voxel_size_m <= 0:
             raise ConfigError(f"voxel_size_m must be > 0, got {voxel_size_m}")
-        voxel_hash.clear_region(self.vox, self.claim, self.count, self.vsum, self.vsumcov,
-                                begin, end)
+        voxel_hash.clear_region(self.vox, self.vsum, self.vsumcov, begin, end)
         self.res[map_id] = voxel_size_m
         self._voxel_size[map_id] = float(voxel_size_m)
         self._num_voxels[map_id] = 0
@@ -159,25 +155,25 @@ class GaussianVoxelMaps:
                                 self.coord, self.probe, self.slot)
         self._settle(map_id, n)
         lost = voxel_hash.accumulate(self.pts, self.covs, self.slot, n, res, self.vox,
-                                     self.count, self.vsum, self.vsumcov)
+                                     self.vsum, self.vsumcov)
         if lost:
             raise MapError(
-                f"voxel map {map_id} is full ({lost} points found no free slot within "
-                f"{self.max_probes} probes); raise buckets_per_map (now {self.buckets}) "
-                "or the voxel size")
+                f"voxel map {map_id}: {lost} points found no free slot within "
+                f"{self.max_probes} probes (raise buckets_per_map, now {self.buckets}, or the "
+                f"voxel size) or lie over 2^20 voxels from the map's origin")
 
     def _finalize(self, map_id: int) -> int:
         from mcl3d.kernels import voxel_hash
 
         begin, end = self._region(map_id)
         self._num_voxels[map_id] = voxel_hash.finalize(
-            self.vox, self.count, self.vsum, self.vsumcov, self._voxel_size[map_id], begin, end)
+            self.vox, self.vsum, self.vsumcov, self._voxel_size[map_id], begin, end)
         return self._num_voxels[map_id]
 
     def _settle(self, map_id: int, n: int) -> None:
         from mcl3d.kernels import voxel_hash
 
-        args = (self.coord, self.probe, self.slot, n, map_id, self.buckets, self.vox, self.claim)
+        args = (self.coord, self.probe, self.slot, n, map_id, self.buckets, self.vox)
         for _ in range(self.max_probes + 1):
             voxel_hash.claim_slots(*args)
             voxel_hash.commit_slots(*args)
@@ -193,7 +189,7 @@ class GaussianVoxelMaps:
         means = np.zeros((max(v, 1), 3), np.float32)
         covs = np.zeros((max(v, 1), 3, 3), np.float32)
         self.counter[None] = 0
-        voxel_hash.gather_voxels(self.vox, self.count, begin, end, means, covs, self.counter)
+        voxel_hash.gather_voxels(self.vox, begin, end, means, covs, self.counter)
         return means[:v].astype(np.float64), covs[:v].astype(np.float64)
 
     def overlap(self, points: np.ndarray, map_ids: list[int],

@@ -128,6 +128,20 @@ def test_full_map_raises_a_clear_error(ti_runtime):
         small.insert(0, pts, np.tile(np.eye(3), (len(pts), 1, 1)))
 
 
+def test_keys_pack_the_whole_coordinate_range(maps):
+    """Cells at both ends of the ±2^20 packable range are stored and found apart; a point
+    beyond it is refused with a clear error instead of aliasing onto another cell."""
+    edge = np.array([[-1048575.5, 3.5, -2.5], [1048574.5, -1048575.5, 0.5], [-0.5, -0.5, 0.5]])
+    maps.clear(2, 1.0)
+    assert maps.insert(2, edge, np.tile(np.eye(3), (3, 1, 1))) == 3
+    means, _ = sorted_voxels(maps, 2)
+    np.testing.assert_array_equal(means, edge[np.lexsort(edge.T)])
+    assert maps.overlap(edge, [2], [np.eye(4)]) == 1.0
+    assert maps.overlap(edge + np.array([0.0, 1.0, 0.0]), [2], [np.eye(4)]) == 0.0
+    with pytest.raises(MapError, match="2\\^20 voxels"):
+        maps.insert(2, np.array([[1048576.5, 0.0, 0.0]]), np.eye(3)[None])
+
+
 def test_bad_input_is_rejected(maps):
     maps.clear(0, 1.0)
     with pytest.raises(PointCloudError, match="NaN"):
