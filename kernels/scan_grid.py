@@ -1,7 +1,8 @@
 """One scan's voxel grid on the device: downsampling and neighbour search without the host.
 
 The grid is sparse: 4x4x4-voxel bricks found through an open-addressing hash table, each
-brick a dense block of 64 cells holding the index of the voxel's output point (-1: empty).
+brick a dense block of 64 cells holding the index of the voxel's output point (valid where
+the brick's 64-bit occupancy has the cell's bit set).
 Downsampling puts every point in its voxel (one ordered pass, so that the voxel means are
 the same bits on every run, numbered in order of first occurrence); the neighbour search
 then reads the 5x5x5 voxels around each output point through at most 8 brick lookups, which
@@ -139,8 +140,6 @@ def insert_points(n: ti.i32, first_chunk: ti.i32, voxel_m: ti.f32, stage_p: ti.t
                             slot_brick[si] = brick
                             slot_key[si] = b
                             brick_slot[brick] = si
-                            for c in range(BRICK_CELLS):
-                                cells[brick * BRICK_CELLS + c] = -1
                             occupancy[2 * brick] = ti.u32(0)
                             occupancy[2 * brick + 1] = ti.u32(0)
                             brick_head[brick] = -1
@@ -157,14 +156,17 @@ def insert_points(n: ti.i32, first_chunk: ti.i32, voxel_m: ti.f32, stage_p: ti.t
             else:
                 local = cell_of(key)
                 cell = brick * BRICK_CELLS + local
-                v = cells[cell]
-                if v < 0:
+                word = 2 * brick + (local >> 5)
+                bit = ti.u32(1) << ti.cast(local & 31, ti.u32)
+                v = -1
+                if occupancy[word] & bit:  # a cell is read only once its bit is set
+                    v = cells[cell]
+                else:
                     if num_voxels < max_voxels:
                         v = num_voxels
                         num_voxels += 1
                         cells[cell] = v
-                        occupancy[2 * brick + (local >> 5)] |= ti.u32(1) << ti.cast(
-                            local & 31, ti.u32)
+                        occupancy[word] |= bit
                         voxel_key[v] = key
                         if brick_head[brick] < 0:
                             brick_head[brick] = v
@@ -390,7 +392,7 @@ def plane_rows(num_voxels: ti.i32, k: ti.i32, min_neighbors: ti.i32, normal_vari
 
 @ti.func
 def clear_grid(counts: ti.template(), brick_slot: ti.template(), slot_brick: ti.template()):
-    """Free the hash slots of the bricks in use (their cells are reset when reused)."""
+    """Free the hash slots of the bricks in use (their occupancy is reset when reused)."""
     for b in range(counts[None][1]):
         slot_brick[brick_slot[b]] = -1
 

@@ -17,6 +17,8 @@ from mcl3d.gaussian_voxels import check_points, ensure_runtime
 
 PLANE_EIGENVALUES = (1e-3, 1.0, 1.0)  # normal first, as small_gicp/gtsam_points (kernel: n, 1, 1)
 MIN_NEIGHBORS = 5  # fewer neighbours than this: identity covariance
+GPU_LAUNCH_POINTS = 16384  # points per launch off the cpu: one GPU thread inserts them in
+# order, and Mesa's lavapipe stops any loop of one thread after 65,535 iterations
 DESKEW_KNOTS = 64  # ScanGrid evaluates the sweep's motion exactly here, interpolates between
 
 
@@ -154,7 +156,7 @@ class ScanGrid:
     def __init__(self, max_points: int = 1 << 17, max_voxels: int = 1 << 16):
         if max_points < 1 or max_voxels < 1:
             raise ConfigError("ScanGrid needs max_points and max_voxels >= 1")
-        ensure_runtime()
+        self.runtime = ensure_runtime()
         import taichi as ti
 
         self.max_points, self.max_voxels = max_points, max_voxels
@@ -217,9 +219,11 @@ class ScanGrid:
             t_first, t_step = 0.0, 1.0
         self.voxel_size_m = float(voxel_size_m)
         max_range = min(float(max_range_m), 3e38)
-        count, starts = -1, range(0, max(len(pts), 1), self.max_points)
+        step = self.max_points if self.runtime.backend == "cpu" else \
+            min(self.max_points, GPU_LAUNCH_POINTS)
+        count, starts = -1, range(0, max(len(pts), 1), step)
         for start in starts:
-            chunk = np.ascontiguousarray(pts[start:start + self.max_points, :3], np.float32)
+            chunk = np.ascontiguousarray(pts[start:start + step, :3], np.float32)
             n = len(chunk)
             count = scan_grid.downsample(
                 chunk.reshape(-1, 3) if n else np.zeros((1, 3), np.float32),
