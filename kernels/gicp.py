@@ -476,10 +476,11 @@ def reset_groups(num_groups: ti.i32, lm_lambda: ti.f32, q_cur: ti.template(),
 
 @ti.kernel
 def upload_source(src: ti.types.ndarray(), n: ti.i32, src_pts: ti.template(),
-                  src_cov: ti.template()):
+                  src_cov: ti.template(), serial: ti.template()):
     """Rows (x, y, z, c0..c5) into the source pool: one launch instead of two, on the calling
-    thread (a copy gains nothing from waking the pool, and loses much on a busy machine)."""
-    ti.loop_config(serialize=True)
+    thread on cpu (`serial`: a copy gains nothing from waking the pool, and loses much on a
+    busy machine), in parallel on a GPU."""
+    ti.loop_config(serialize=serial)
     for i in range(n):
         src_pts[i] = vec3(src[i, 0], src[i, 1], src[i, 2])
         for a in ti.static(range(6)):

@@ -193,17 +193,17 @@ def resolve_slots(coord: ti.template(), probe: ti.template(), slot: ti.template(
 
 
 @ti.kernel
-def accumulate(pts: ti.template(), covs: ti.template(), slot: ti.template(), n: ti.i32,
-               res: ti.f32, vox: ti.template(), vsum: ti.template(),
+def accumulate(pts: ti.template(), covs: ti.template(), slot: ti.template(), begin: ti.i32,
+               end: ti.i32, res: ti.f32, vox: ti.template(), vsum: ti.template(),
                vsumcov: ti.template()) -> ti.i32:
-    """Add the settled points to their voxels; returns how many points could not be placed.
+    """Add settled points [begin, end) to their voxels; returns how many could not be placed.
 
     One ordered pass: parallel float sums would differ in the last bits from run to run,
     and registration turns those into different trajectories. Points arrive a keyframe at a
     time, so this costs about 2 ms per keyframe on cpu."""
     lost = 0
     ti.loop_config(serialize=True)
-    for i in range(n):
+    for i in range(begin, end):
         s = slot[i]
         if s >= 0:
             centre = (ti.cast(unpack_key(vox[s].key), ti.f32) + 0.5) * res

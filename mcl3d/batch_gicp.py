@@ -166,7 +166,7 @@ class BatchGicp:
             rows = 0.5 * (covs[:, iu, ju] + covs[:, ju, iu])
         if len(pts):
             gicp.upload_source(np.ascontiguousarray(np.c_[pts, rows], np.float32), len(pts),
-                               self.src_pts, self.src_cov)
+                               self.src_pts, self.src_cov, self.maps.runtime.backend == "cpu")
         self.num_source = len(pts)
 
     def use_device_source(self, num_points: int, plane_covs: bool) -> None:

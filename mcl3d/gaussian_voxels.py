@@ -13,6 +13,9 @@ import numpy as np
 from mcl3d.errors import ConfigError, MapError, PointCloudError
 from mcl3d.geometry import rot_to_quat
 
+GPU_LAUNCH_POINTS = 16384  # points per ordered launch off the cpu: one GPU thread takes them
+# in order, and Mesa's lavapipe stops any loop of one thread after 65,535 iterations
+
 
 def ensure_runtime():
     """The running Taichi runtime, starting `auto` when the caller has not chosen one."""
@@ -154,8 +157,10 @@ class GaussianVoxelMaps:
         voxel_hash.begin_insert(self.pts, self.covs, n, T.astype(np.float32), res,
                                 self.coord, self.probe, self.slot)
         self._settle(map_id, n)
-        lost = voxel_hash.accumulate(self.pts, self.covs, self.slot, n, res, self.vox,
-                                     self.vsum, self.vsumcov)
+        step = n if self.runtime.backend == "cpu" else GPU_LAUNCH_POINTS
+        lost = sum(voxel_hash.accumulate(self.pts, self.covs, self.slot, begin,
+                                         min(begin + step, n), res, self.vox, self.vsum,
+                                         self.vsumcov) for begin in range(0, n, step))
         if lost:
             raise MapError(
                 f"voxel map {map_id}: {lost} points found no free slot within "

@@ -13,12 +13,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from mcl3d.errors import ConfigError, PointCloudError
-from mcl3d.gaussian_voxels import check_points, ensure_runtime
+from mcl3d.gaussian_voxels import GPU_LAUNCH_POINTS, check_points, ensure_runtime
 
 PLANE_EIGENVALUES = (1e-3, 1.0, 1.0)  # normal first, as small_gicp/gtsam_points (kernel: n, 1, 1)
 MIN_NEIGHBORS = 5  # fewer neighbours than this: identity covariance
-GPU_LAUNCH_POINTS = 16384  # points per launch off the cpu: one GPU thread inserts them in
-# order, and Mesa's lavapipe stops any loop of one thread after 65,535 iterations
 DESKEW_KNOTS = 64  # ScanGrid evaluates the sweep's motion exactly here, interpolates between
 
 

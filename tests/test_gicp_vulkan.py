@@ -1,7 +1,7 @@
-"""Batched GICP gives the same sums and overlap counts on Vulkan (Mesa's lavapipe in CI) as on
-cpu.
+"""Batched GICP and its voxel maps give the same numbers on Vulkan (Mesa's lavapipe in CI) as
+on cpu.
 
-Two Vulkan failures this catches, both silent: summing a pose's chunk sums with `acc[g] +=`
+Two GICP failures this catches, both silent: summing a pose's chunk sums with `acc[g] +=`
 in a loop kept only some chunks (125 of 297 inliers), and an overlap counted by one thread per
 pose lost lookups after a few thousand of them (18 of 241 hits)."""
 
@@ -49,3 +49,24 @@ def test_batched_gicp_on_cpu_and_vulkan_agree(vulkan_runtime):
     np.testing.assert_allclose(vk.b, cpu.b, rtol=1e-3, atol=1e-3 * np.abs(cpu.b).max())
     assert cpu.overlap.min() > 0.7
     np.testing.assert_allclose(vk.overlap, cpu.overlap, atol=1.5 / 300)
+
+
+def _voxel_means(backend, points):
+    from mcl3d import runtime
+    from mcl3d.gaussian_voxels import GaussianVoxelMaps
+
+    runtime.init(backend)
+    maps = GaussianVoxelMaps(max_maps=1, buckets_per_map=1 << 12, max_points=len(points))
+    maps.clear(0, 1.0)
+    maps.insert(0, points, np.tile(np.eye(3), (len(points), 1, 1)))
+    means, _ = maps.voxels(0)
+    return means[np.lexsort(means.T)]
+
+
+def test_a_large_insert_adds_every_point_on_vulkan(vulkan_runtime):
+    """100,000 points in one insert: every one reaches its voxel's mean on Vulkan too (the
+    ordered sums once ran in one launch, and lavapipe stopped that loop at 65,535 points)."""
+    points = np.random.default_rng(1).uniform(0.0, 10.0, (100000, 3))
+    cpu = _voxel_means("cpu", points)
+    assert len(cpu) == 1000
+    np.testing.assert_allclose(_voxel_means("vulkan", points), cpu, atol=1e-4)
