@@ -2,10 +2,10 @@
 
 Lookups read one AoS struct field `vox` (key, mean, cov, count, claim: 64 bytes, so one probe
 touches one cache line); the insertion-only sums live in separate fields. A key is the voxel's
-three coordinates packed into one i64 (21 bits each, cells within ±2^20 voxels of the map's
-origin: ±262 km at 0.25 m), so that a lookup reads and compares one integer, and EMPTY_KEY
-marks a free slot: no separate state to read (the batched GICP's gathers are what its cost is
-made of).
+three coordinates packed into two i32 words (21 bits each: cells within ±2^20 voxels of the
+map's origin, ±262 km at 0.25 m), and a free slot is marked by its high word (EMPTY_KEY), so a
+lookup reads and compares two words and no separate state: the batched GICP's cost is mostly
+these scattered reads. (One i64 key made LLVM vectorize that loop 4 wide instead of 8.)
 
 The table holds `max_maps` independent maps, each a region of `buckets` (a power of two)
 slots: slot `m * buckets + (hash(ix, iy, iz) + probe) & (buckets - 1)`. A voxel keeps the sum

@@ -42,7 +42,7 @@ class OdometryConfig(Section):
     keyframe_overlap: float = Field(0.7, gt=0, le=1, description="new keyframe when the "
                                     "scan's overlap with the keyframes drops below this")
     max_keyframes: int = Field(10, ge=1, le=64, description="keyframes in the local map "
-                               "(oldest evicted; the overlap test lists them all, at most 64)")
+                               "(oldest evicted; the overlap test lists them all)")
     registration_keyframes: int = Field(3, ge=1, description="register against this many "
                                         "keyframes nearest to the predicted pose")
     max_iterations: int = Field(20, ge=1, description="Gauss-Newton iterations per scan")
