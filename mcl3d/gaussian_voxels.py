@@ -157,7 +157,7 @@ class GaussianVoxelMaps:
         voxel_hash.begin_insert(self.pts, self.covs, n, T.astype(np.float32), res,
                                 self.coord, self.probe, self.slot)
         self._settle(map_id, n)
-        step = n if self.runtime.backend == "cpu" else GPU_LAUNCH_POINTS
+        step = max(n, 1) if self.runtime.backend == "cpu" else GPU_LAUNCH_POINTS
         lost = sum(voxel_hash.accumulate(self.pts, self.covs, self.slot, begin,
                                          min(begin + step, n), res, self.vox, self.vsum,
                                          self.vsumcov) for begin in range(0, n, step))
