@@ -43,3 +43,51 @@ def vulkan_runtime():
         return runtime.init("vulkan")
     except BackendUnavailable as exc:
         pytest.skip(str(exc))
+
+
+VULKAN_PROCESS = """
+import pickle, sys
+from mcl3d import runtime
+from mcl3d.errors import BackendUnavailable
+try:
+    runtime.init("vulkan")
+except BackendUnavailable as exc:
+    print(exc, file=sys.stderr)
+    sys.exit(77)
+from {module} import {function}
+with open(sys.argv[1], "rb") as f:
+    args = pickle.load(f)
+with open(sys.argv[1], "wb") as f:
+    pickle.dump({function}("vulkan", *args), f)
+"""
+
+
+@pytest.fixture
+def on_vulkan(tmp_path):
+    """`run(function, *args)`: function("vulkan", *args) in a fresh process, its result back
+    (a module-level function of a test file; arguments and result pickled). Each Vulkan check
+    gets its own lavapipe instance: restarts within one worker let driver state build up (a
+    worker crashed there, and pytest-xdist hung on it), and a crash now fails one test. Skips
+    when no Vulkan driver is installed."""
+    import pickle
+    import subprocess
+    import sys
+
+    from mcl3d.vulkan_probe import vulkan_devices
+
+    if not vulkan_devices():
+        pytest.skip("no Vulkan driver: install mesa-vulkan-drivers and libvulkan1 (setup.sh does)")
+
+    def run(function, *args):
+        exchange = tmp_path / f"{function.__name__}.pickle"
+        exchange.write_bytes(pickle.dumps(args))
+        code = VULKAN_PROCESS.format(module=function.__module__, function=function.__name__)
+        proc = subprocess.run([sys.executable, "-c", code, str(exchange)], capture_output=True,
+                              text=True, cwd=Path(__file__).parent, timeout=600)
+        if proc.returncode == 77:
+            pytest.skip(proc.stderr.strip())
+        if proc.returncode != 0:
+            pytest.fail(f"the Vulkan process exited with {proc.returncode}:\n{proc.stderr[-3000:]}")
+        return pickle.loads(exchange.read_bytes())
+
+    return run

@@ -39,8 +39,8 @@ def _run(backend):
     return gicp.result(overlap_maps=[1, 0], overlap_T_left=np.stack([T_shift, np.eye(4)]))
 
 
-def test_batched_gicp_on_cpu_and_vulkan_agree(vulkan_runtime):
-    vk = _run("vulkan")
+def test_batched_gicp_on_cpu_and_vulkan_agree(on_vulkan):
+    vk = on_vulkan(_run)
     cpu = _run("cpu")
     assert (cpu.num_inliers > 200).all()
     np.testing.assert_array_equal(vk.num_inliers, cpu.num_inliers)
@@ -63,10 +63,10 @@ def _voxel_means(backend, points):
     return means[np.lexsort(means.T)]
 
 
-def test_a_large_insert_adds_every_point_on_vulkan(vulkan_runtime):
+def test_a_large_insert_adds_every_point_on_vulkan(on_vulkan):
     """100,000 points in one insert: every one reaches its voxel's mean on Vulkan too (the
     ordered sums once ran in one launch, and lavapipe stopped that loop at 65,535 points)."""
     points = np.random.default_rng(1).uniform(0.0, 10.0, (100000, 3))
     cpu = _voxel_means("cpu", points)
     assert len(cpu) == 1000
-    np.testing.assert_allclose(_voxel_means("vulkan", points), cpu, atol=1e-4)
+    np.testing.assert_allclose(on_vulkan(_voxel_means, points), cpu, atol=1e-4)

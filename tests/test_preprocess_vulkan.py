@@ -32,8 +32,8 @@ def _run(backend):
     return download_rows(out_pts, out_rows, n)
 
 
-def test_scan_grid_on_cpu_and_vulkan_agree(vulkan_runtime):
-    vk_pts, vk_rows = _run("vulkan")
+def test_scan_grid_on_cpu_and_vulkan_agree(on_vulkan):
+    vk_pts, vk_rows = on_vulkan(_run)
     cpu_pts, cpu_rows = _run("cpu")
     assert len(cpu_pts) > 100 and len(vk_pts) == len(cpu_pts)
     # the same voxels in the same order (first occurrence), means within f32 rounding
@@ -55,10 +55,10 @@ def _count_voxels(backend, pts):
     return grid.downsample(pts, 0.25, ti.Vector.field(3, ti.f32, 1 << 17))
 
 
-def test_a_real_sized_scan_keeps_every_voxel_on_vulkan(vulkan_runtime):
+def test_a_real_sized_scan_keeps_every_voxel_on_vulkan(on_vulkan):
     """70,000 scattered points, nearly one voxel and one brick each: as many voxels as on cpu
     (lavapipe kept 953 of 69,818 when one launch inserted them all)."""
     pts = np.random.default_rng(0).uniform(-30.0, 30.0, (70000, 3))
     cpu = _count_voxels("cpu", pts)
     assert cpu > 69000
-    assert _count_voxels("vulkan", pts) == cpu
+    assert on_vulkan(_count_voxels, pts) == cpu

@@ -7,14 +7,16 @@ import tsdf_world as world
 pytestmark = pytest.mark.vulkan
 
 
-def _run(tmp_path, tag):
-    """Fuse two scans, query, save with f16 and reload; everything back as numpy."""
+def _run(backend, tmp_path):
+    """Fuse two scans, query, save with f16 and reload on `backend`; everything back as numpy."""
     import taichi as ti
 
+    from mcl3d import runtime
     from mcl3d.kernels import tsdf as k
     from mcl3d.maps.build import BuildConfig, MapGeometry, ScanFuser, new_map
     from mcl3d.maps.io import load_map, save_map
 
+    runtime.init(backend)
     vertices, triangles = world.room_mesh()
     # off the voxel grid: surfaces exactly on voxel faces would make floor() of a point on
     # them depend on the last bit, which FMA changes between backends
@@ -47,7 +49,7 @@ def _run(tmp_path, tag):
     p = np.random.default_rng(0).uniform([0, 0, 0], [6, 5, 3], (2000, 3)).astype(np.float32)
     out = np.zeros((2000, 7), np.float32)
     query(tsdf, p, out)
-    path = tmp_path / f"{tag}.tsdf"
+    path = tmp_path / f"{backend}.tsdf"
     save_map(path, tsdf, source={}, build={}, f16=True)
     loaded = load_map(path)
     out16 = np.zeros((2000, 7), np.float32)
@@ -55,13 +57,9 @@ def _run(tmp_path, tag):
     return data, out, out16
 
 
-def test_cpu_and_vulkan_agree(vulkan_runtime, tmp_path):
-    from mcl3d import runtime
-
-    assert vulkan_runtime.backend == "vulkan"
-    vk = _run(tmp_path, "vulkan")
-    runtime.init("cpu")
-    cpu = _run(tmp_path, "cpu")
+def test_cpu_and_vulkan_agree(on_vulkan, tmp_path):
+    vk = on_vulkan(_run, tmp_path)
+    cpu = _run("cpu", tmp_path)
     (dv, qv, q16v), (dc, qc, q16c) = vk, cpu
     # f32 rounding differs between backends (FMA, atomic order): a sample on a voxel face
     # or a footprint size on its threshold may flip, so a few blocks and voxels differ
