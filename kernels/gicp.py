@@ -366,7 +366,8 @@ def step(num_groups: ti.i32, use_lm: ti.i32, rot_eps: ti.f32, trans_eps: ti.f32,
     """Accept or reject each running group's candidate, then propose the next one.
 
     The first linearization (iters == 0) is always accepted; Gauss-Newton accepts every
-    candidate; LM accepts one whose error does not grow (λ /= 10), else retries with λ *= 10.
+    candidate; LM accepts one whose error does not grow (λ /= 10), else retries with λ *= 10
+    (until λ exceeds LM_MAX_LAMBDA: stalled).
     Returns the number of groups still running. `serial` (few groups) stays on the calling
     thread: waking the thread pool costs more than the work, much more on a busy machine."""
     running = 0
@@ -398,7 +399,9 @@ def step(num_groups: ti.i32, use_lm: ti.i32, rot_eps: ti.f32, trans_eps: ti.f32,
                 delta = damped_step(best_H[g], best_b[g], damping)
                 w = vec3(delta[0], delta[1], delta[2])
                 v = vec3(delta[3], delta[4], delta[5])
-                if w.norm() < rot_eps and v.norm() < trans_eps:
+                # after a rejection the step is small because λ grew, not because the pose
+                # is there: LM converges only on a step proposed from an accepted pose
+                if w.norm() < rot_eps and v.norm() < trans_eps and accept:
                     status[g] = CONVERGED
                 else:
                     q_cand[g], t_cand[g] = pose_retract(q_cur[g], t_cur[g], w, v)
