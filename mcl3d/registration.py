@@ -86,7 +86,7 @@ def align(target: Scan | np.ndarray, source: Scan | np.ndarray,
           init_T_target_source: np.ndarray | None = None,
           voxel_resolution_m: float | Sequence[float] = DEFAULT_RESOLUTIONS_M,
           max_iterations: int = 30, use_lm: bool = False,
-          rotation_epsilon_rad: float = np.radians(1e-3), translation_epsilon_m: float = 1e-4,
+          rotation_epsilon_rad: float = np.radians(0.1), translation_epsilon_m: float = 1e-3,
           downsampling_resolution_m: float = 0.1) -> RegistrationResult:
     """VGICP of `source` onto `target` (Scans, or raw (N, 3) points which are preprocessed
     with `downsampling_resolution_m`), coarse to fine over `voxel_resolution_m`."""

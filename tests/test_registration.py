@@ -39,13 +39,16 @@ def test_hdl32_pair_matches_the_reference_pose(ti_runtime, hdl32):
     assert "converged=True" in repr(result)
 
 
-def test_hdl32_pair_from_a_perturbed_guess(ti_runtime, hdl32):
+@pytest.mark.parametrize("use_lm", [False, True])
+def test_hdl32_pair_from_a_perturbed_guess(ti_runtime, hdl32, use_lm):
+    """Back from 3° and 37 cm off, with Gauss-Newton and with Levenberg-Marquardt."""
     from mcl3d.registration import align
 
     target, source, reference = hdl32
     guess = reference @ se3(so3_exp(np.radians([1.0, -1.0, 3.0])), [0.3, -0.2, 0.1])
-    result = align(target, source, guess, use_lm=True)
+    result = align(target, source, guess, use_lm=use_lm)
     error = se3_inverse(reference) @ result.T_target_source
+    assert result.converged
     assert np.linalg.norm(error[:3, 3]) < 0.02
     assert np.degrees(rotation_angle(error[:3, :3])) < 0.2
 
