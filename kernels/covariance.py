@@ -2,13 +2,19 @@
 
 For each point: the scatter of its neighbours, its smallest eigenvector n (the local surface
 normal), and C = I - (1 - 1e-3) n nᵀ, i.e. eigenvalues (1e-3, 1, 1) along (n, surface);
-the identity when fewer than `min_neighbors` neighbours were found.
+the identity when fewer than `min_neighbors` neighbours were found or when they lie along a
+scan line (`is_scan_line`).
 """
 
 import taichi as ti
 
 JACOBI_SWEEPS = 4  # cyclic Jacobi on 3x3 converges quadratically: 4 sweeps reach f32 precision
 SEPARATION = 1e-2  # closed form when (λmid - λmin)(λmax - λmin) > this (trace 1), else Jacobi
+# middle / largest eigenvalue of the neighbours' scatter below this: a line (std ratio 0.22)
+LINE_RATIO = 0.05
+# a line within 30° of the cloud frame's xy plane (sin² 30°) is a scan line: a spinning
+# lidar's rings are cones of at most ±22.5° (OS1-64), so their arcs lie within it
+SCAN_LINE_SIN2_SLOPE = 0.25
 
 
 @ti.func
@@ -41,6 +47,26 @@ def smallest_eigenvector(S: ti.math.mat3) -> ti.math.vec3:
     if c.norm_sqr() < SEPARATION * SEPARATION:  # |c| ~ (λmid - λ)(λmax - λ), trace 1
         n = jacobi_smallest_eigenvector(A)
     return n
+
+
+@ti.func
+def is_scan_line(S: ti.math.mat3, n: ti.math.vec3) -> bool:
+    """Whether a scatter S (smallest eigenvector n) is a sparse lidar's scan line: spread along
+    one direction only (λmid < LINE_RATIO λmax) and that direction near the sensor's
+    horizontal plane, e.g. one ring's arc on the ground. Across such a line the points are
+    range noise, so the normal is noise too, and a disc across the wrong normal pulls
+    registration along the surface as the rings move from scan to scan: these points take
+    the identity. Steep lines keep their disc: a trunk or a pole seen by several rings is an
+    arc facing the sensor, whose normal holds. λmid and λmax come from the trace and the sum
+    of principal 2x2 minors given λmin = nᵀSn; the line's slope from S_zz ≈ λmax u_z²."""
+    lam_min = n.dot(S @ n)
+    rest = S.trace() - lam_min  # λmid + λmax
+    minors = (S[0, 0] * S[1, 1] - S[0, 1] * S[0, 1] + S[0, 0] * S[2, 2] - S[0, 2] * S[0, 2]
+              + S[1, 1] * S[2, 2] - S[1, 2] * S[1, 2])
+    product = ti.max(minors - lam_min * rest, 0.0)  # λmid λmax
+    gap = ti.sqrt(ti.max(rest * rest - 4.0 * product, 0.0))  # λmax - λmid
+    lam_mid, lam_max = 0.5 * (rest - gap), 0.5 * (rest + gap)
+    return lam_mid < LINE_RATIO * lam_max and S[2, 2] < SCAN_LINE_SIN2_SLOPE * lam_max
 
 
 @ti.func
@@ -102,7 +128,8 @@ def plane_covariances(points: ti.types.ndarray(), neighbors: ti.types.ndarray(),
                 S += d.outer_product(d)
             S /= ti.cast(m, ti.f32)
             normal = smallest_eigenvector(S)
-            C = ti.math.eye(3) - (1.0 - normal_variance) * normal.outer_product(normal)
+            if not is_scan_line(S, normal):
+                C = ti.math.eye(3) - (1.0 - normal_variance) * normal.outer_product(normal)
         for a in ti.static(range(3)):
             for b in ti.static(range(3)):
                 out[i, a, b] = C[a, b]

@@ -20,7 +20,7 @@ passes are serialized loops (`ti.loop_config(serialize=True)`: free).
 
 import taichi as ti
 
-from mcl3d.kernels.covariance import smallest_eigenvector
+from mcl3d.kernels.covariance import is_scan_line, smallest_eigenvector
 from mcl3d.kernels.se3 import pose_retract, quat_to_mat
 from mcl3d.kernels.voxel_hash import voxel_hash
 
@@ -362,7 +362,7 @@ def plane_rows(num_voxels: ti.i32, k: ti.i32, min_neighbors: ti.i32, normal_vari
     """Covariance of each point's k nearest points (itself included), plane-regularized:
     C = I - (1 - normal_variance) n nᵀ with n the normal, stored as (n, α=1,
     β=normal_variance-1, 0) (batch_gicp.plane_form's rows); the identity (α=1, β=0) with
-    fewer than `min_neighbors` points.
+    fewer than `min_neighbors` points or points along a scan line (covariance.is_scan_line).
 
     The k nearest within the 5x5x5 voxels around the point (exact when the k-th nearest lies
     within 2 voxels: nothing outside is closer); a point with fewer than `min_neighbors` there
@@ -385,8 +385,10 @@ def plane_rows(num_voxels: ti.i32, k: ti.i32, min_neighbors: ti.i32, normal_vari
             for j in range(found):
                 d = pts[nbr[j]] - p - mean
                 S += d.outer_product(d)
-            n = smallest_eigenvector(S / ti.cast(found, ti.f32))
-            row = ti.Vector([n[0], n[1], n[2], 1.0, normal_variance - 1.0, 0.0], ti.f32)
+            S /= ti.cast(found, ti.f32)
+            n = smallest_eigenvector(S)
+            if not is_scan_line(S, n):
+                row = ti.Vector([n[0], n[1], n[2], 1.0, normal_variance - 1.0, 0.0], ti.f32)
         out_plane[v] = row
 
 

@@ -70,7 +70,9 @@ def estimate_covariances(points: np.ndarray, k_neighbors: int = 10,
     """Plane-regularized covariance of each point's k nearest neighbours (itself included).
 
     Eigenvalues are replaced by (1e-3, 1, 1): a thin disc along the local surface. A point
-    with fewer than 5 neighbours (within `max_neighbor_dist_m`) gets the identity.
+    with fewer than 5 neighbours (within `max_neighbor_dist_m`), or whose neighbours lie along
+    a near-horizontal line (a sparse lidar's scan line: no surface normal; see
+    kernels/covariance.is_scan_line), gets the identity.
     """
     from scipy.spatial import cKDTree
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scan_lines import scan_lines
 
 from mcl3d.errors import ConfigError, PointCloudError
 from mcl3d.geometry import se3_exp, transform_points
@@ -20,14 +21,18 @@ def test_voxel_downsample_is_the_mean_per_voxel():
 
 
 def reference_covariances(points, k):
-    """float64 NumPy reference: scatter of the k nearest, eigenvalues set to (1e-3, 1, 1)."""
+    """float64 NumPy reference: scatter of the k nearest, eigenvalues set to (1e-3, 1, 1); the
+    identity where the scatter is a scan line."""
     from scipy.spatial import cKDTree
 
     _, idx = cKDTree(points).query(points, k=k)
     nb = points[idx]
     d = nb - nb.mean(axis=1, keepdims=True)
-    _, U = np.linalg.eigh(np.einsum("nki,nkj->nij", d, d) / k)
-    return np.einsum("nij,j,nkj->nik", U, np.array([1e-3, 1.0, 1.0]), U)
+    S = np.einsum("nki,nkj->nij", d, d) / k
+    _, U = np.linalg.eigh(S)
+    out = np.einsum("nij,j,nkj->nik", U, np.array([1e-3, 1.0, 1.0]), U)
+    out[scan_lines(S)] = np.eye(3)
+    return out
 
 
 def test_covariance_kernel_matches_numpy(ti_runtime):
@@ -43,13 +48,16 @@ def test_covariance_kernel_matches_numpy(ti_runtime):
 
 def test_normals_of_given_scatters_match_numpy(ti_runtime):
     """The kernel's normal (closed form, Jacobi where the two smallest eigenvalues are close)
-    for scatters with known spectra: six points ±sqrt(3 λ) u per eigenpair (λ, u)."""
+    for scatters with known spectra: six points ±sqrt(3 λ) u per eigenpair (λ, u). Scan lines
+    (λmid < LINE_RATIO λmax, spectra on either side of the bound, at random slopes) get the
+    identity."""
     from scipy.spatial.transform import Rotation
 
     from mcl3d.kernels.covariance import plane_covariances
 
     spectra = [(0.0, 1.0, 1.0), (1e-4, 0.3, 1.0), (0.02, 0.5, 0.6), (1e-3, 2e-3, 1.0),
-               (0.0, 1e-7, 1.0), (0.0, 0.0, 1.0), (1.0, 1.0, 1.0)]
+               (0.0, 1e-7, 1.0), (0.0, 0.0, 1.0), (1.0, 1.0, 1.0), (1e-4, 0.06, 1.0),
+               (1e-4, 0.04, 1.0), (0.01, 0.055, 1.0)]
     R = Rotation.random(8 * len(spectra), random_state=4).as_matrix()
     lam = np.repeat(np.array(spectra), 8, axis=0) * np.geomspace(1e-4, 1e2, len(R))[:, None]
     axes = np.sqrt(3.0 * lam)[:, :, None] * R.transpose(0, 2, 1)  # rows: sqrt(3 λ_j) u_j
@@ -57,15 +65,17 @@ def test_normals_of_given_scatters_match_numpy(ti_runtime):
     out = np.empty((len(R), 3, 3), np.float32)
     plane_covariances(pts.astype(np.float32), np.arange(len(pts), dtype=np.int32).reshape(-1, 6),
                       np.full(len(R), 6, np.int32), len(R), 5, 1e-3, out)
+    S = np.einsum("nji,nj,njk->nik", R.transpose(0, 2, 1), lam, R.transpose(0, 2, 1))
+    line = scan_lines(S)
+    steep = np.repeat([s[1] < 0.05 * s[2] for s in spectra], 8) & ~line
+    assert line.any() and steep.any() and not line.all()
+    np.testing.assert_allclose(out[line], np.tile(np.eye(3), (line.sum(), 1, 1)))
     normal = np.linalg.eigh(out.astype(np.float64))[1][:, :, 0]
     cos = np.abs(np.einsum("ni,ni->n", normal, R[:, :, 0]))
-    line = np.repeat([s[1] < 1e-6 * s[2] for s in spectra], 8)  # f32 cannot tell λ1 from λ2
-    distinct = np.repeat([s[0] < s[1] for s in spectra], 8) & ~line
+    distinct = np.repeat([s[0] < s[1] and s[1] > 1e-6 * s[2] for s in spectra], 8) & ~line
     assert cos[distinct].min() > 1.0 - 1e-5
-    # a line: any normal across it will do
-    assert np.abs(np.einsum("ni,ni->n", normal, R[:, :, 2]))[line].max() < 1e-3
-    np.testing.assert_allclose(np.linalg.eigvalsh(out.astype(np.float64)),
-                               np.tile([1e-3, 1.0, 1.0], (len(R), 1)), atol=1e-5)
+    np.testing.assert_allclose(np.linalg.eigvalsh(out[~line].astype(np.float64)),
+                               np.tile([1e-3, 1.0, 1.0], ((~line).sum(), 1)), atol=1e-5)
 
 
 def test_covariance_of_a_plane_is_a_thin_disc_along_it(ti_runtime):
@@ -81,6 +91,28 @@ def test_covariance_of_a_plane_is_a_thin_disc_along_it(ti_runtime):
         w, U = np.linalg.eigh(C)
         np.testing.assert_allclose(w, [1e-3, 1.0, 1.0], atol=1e-6)
         assert abs(abs(U[:, 0] @ normal) - 1.0) < 0.05
+
+
+def test_a_scan_line_gets_the_identity_and_a_trunk_a_disc(ti_runtime):
+    """A sparse lidar's ring on the ground: alone, its neighbours lie along a line and say
+    nothing of the ground's normal (identity); with the next ring close by, a disc. A trunk
+    seen by several rings (a steep line, an arc facing the sensor) keeps its disc."""
+    rng = np.random.default_rng(3)
+    x = np.linspace(0.0, 6.0, 25)
+    ring = np.c_[x, 0.002 * rng.normal(size=25), np.full(25, -1.5)]
+    np.testing.assert_allclose(estimate_covariances(ring, 10), np.tile(np.eye(3), (25, 1, 1)))
+    two_rings = np.vstack([ring, ring + np.array([0.0, 0.6, 0.0])])
+    for C in estimate_covariances(two_rings, 10):
+        w, U = np.linalg.eigh(C)
+        np.testing.assert_allclose(w, [1e-3, 1.0, 1.0], atol=1e-6)
+        assert abs(U[2, 0]) > 0.999
+    angle = np.linspace(-0.6, 0.6, 5)  # the sensor-facing arc of a 15 cm trunk at x = 6 m
+    trunk = np.array([[6.0 - 0.15 * np.cos(a), 0.15 * np.sin(a), z]
+                      for z in np.linspace(-1.0, 2.0, 10) for a in angle])
+    for C in estimate_covariances(trunk, 10):
+        w, U = np.linalg.eigh(C)
+        np.testing.assert_allclose(w, [1e-3, 1.0, 1.0], atol=1e-6)
+        assert abs(U[0, 0]) > 0.9  # facing the sensor
 
 
 def test_too_few_neighbours_give_the_identity(ti_runtime):

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scan_lines import scan_lines
 
 from mcl3d.errors import ConfigError, PointCloudError
 from mcl3d.preprocess import (
@@ -42,7 +43,9 @@ def by_voxel(points, voxel_m):
 
 def reference_covariances(points, voxel_m, k, min_neighbors=5):
     """float64 NumPy reference of the grid's plane covariances: the k nearest within 2 voxels
-    (Chebyshev), else within the 3x3x3 bricks of 4^3 voxels; eigenvalues (1e-3, 1, 1)."""
+    (Chebyshev), else within the 3x3x3 bricks of 4^3 voxels; eigenvalues (1e-3, 1, 1), the
+    identity for a scan line (scan_lines.py)."""
+
     keys = np.floor(points / voxel_m).astype(np.int64)
     bricks = np.floor_divide(keys, 4)
     out = np.tile(np.eye(3), (len(points), 1, 1))
@@ -55,8 +58,10 @@ def reference_covariances(points, voxel_m, k, min_neighbors=5):
         d = np.linalg.norm(points[near] - p, axis=1)
         nb = points[near[np.argsort(d, kind="stable")[:k]]]
         c = nb - nb.mean(axis=0)
-        _, U = np.linalg.eigh(c.T @ c / len(nb))
-        out[i] = U @ np.diag([1e-3, 1.0, 1.0]) @ U.T
+        S = c.T @ c / len(nb)
+        if not scan_lines(S[None])[0]:
+            U = np.linalg.eigh(S)[1]
+            out[i] = U @ np.diag([1e-3, 1.0, 1.0]) @ U.T
     return out
 
 
@@ -91,13 +96,17 @@ def test_covariances_match_numpy_on_surfaces_and_sparse_points(grid):
     lone = rng.uniform(-8, 8, (40, 3)) + np.array([12.0, 0.0, 0.0])  # identity
     # a sparse plane (~2 points/m²): too few within 2 voxels, a plane within the bricks
     thin = np.c_[rng.uniform(-3, 3, (80, 2)) + np.array([0.0, 8.0]), np.full(80, 2.9)]
-    pts = np.vstack([wall, floor, lone, thin]) + 0.002 * rng.normal(size=(920, 3))
+    # a lone scan line on the ground, 4.9 m from the floor: a line, no normal (identity)
+    ring = np.c_[np.linspace(-3, 3, 40), np.full(40, -6.0), np.full(40, -1.1)]
+    pts = np.vstack([wall, floor, lone, thin, ring]) + 0.002 * rng.normal(size=(960, 3))
     for k in (5, 10, 32):  # one grid: a new one would compile the kernel again
         got, rows = run(grid, pts, 0.2, k=k)
         ref = reference_covariances(got.astype(np.float64), 0.2, k)
         np.testing.assert_allclose(plane_rows_to_covs(rows), ref, atol=2e-3)
         identity = (rows[:, 4] == 0)
         assert identity.any() and not identity.all()
+        on_ring = np.abs(got[:, 1] + 6.0) < 0.1
+        assert on_ring.sum() > 20 and identity[on_ring].all()
     # the same bits on every run (fixed-order sums, no float atomics)
     again_pts, again_rows = run(grid, pts, 0.2, k=k)
     assert np.array_equal(got, again_pts) and np.array_equal(rows, again_rows)
