@@ -150,8 +150,8 @@ def batched(args, target, source, reference):
         result[n] = (statistics.median(times) * 1e3, statistics.median(cpus) * 1e3)
         repeats[n] = blocks
     gicp.set_problem(poses, row_group=np.arange(args.poses), row_map=np.zeros(args.poses))
-    # small_gicp's thresholds, as align() and the odometry: on the piecewise voxel cost a pose
-    # can circle a limit cycle of ~0.01° and never pass tighter ones
+    # small_gicp's thresholds, where align() and the odometry stop too: on the piecewise voxel
+    # cost (points change voxels) poses can circle small limit cycles
     out = gicp.optimize(max_iterations=10, rotation_eps_rad=np.radians(0.1),
                         translation_eps_m=1e-3)
     # every pose should reach the same minimum of this 512-point cost (which, with so few

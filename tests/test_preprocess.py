@@ -53,7 +53,7 @@ def test_normals_of_given_scatters_match_numpy(ti_runtime):
     identity."""
     from scipy.spatial.transform import Rotation
 
-    from mcl3d.kernels.covariance import plane_covariances
+    from mcl3d.kernels.covariance import LINE_RATIO, plane_covariances
 
     spectra = [(0.0, 1.0, 1.0), (1e-4, 0.3, 1.0), (0.02, 0.5, 0.6), (1e-3, 2e-3, 1.0),
                (0.0, 1e-7, 1.0), (0.0, 0.0, 1.0), (1.0, 1.0, 1.0), (1e-4, 0.06, 1.0),
@@ -67,7 +67,7 @@ def test_normals_of_given_scatters_match_numpy(ti_runtime):
                       np.full(len(R), 6, np.int32), len(R), 5, 1e-3, out)
     S = np.einsum("nji,nj,njk->nik", R.transpose(0, 2, 1), lam, R.transpose(0, 2, 1))
     line = scan_lines(S)
-    steep = np.repeat([s[1] < 0.05 * s[2] for s in spectra], 8) & ~line
+    steep = np.repeat([s[1] < LINE_RATIO * s[2] for s in spectra], 8) & ~line  # a disc
     assert line.any() and steep.any() and not line.all()
     np.testing.assert_allclose(out[line], np.tile(np.eye(3), (line.sum(), 1, 1)))
     normal = np.linalg.eigh(out.astype(np.float64))[1][:, :, 0]

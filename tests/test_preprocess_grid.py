@@ -45,7 +45,6 @@ def reference_covariances(points, voxel_m, k, min_neighbors=5):
     """float64 NumPy reference of the grid's plane covariances: the k nearest within 2 voxels
     (Chebyshev), else within the 3x3x3 bricks of 4^3 voxels; eigenvalues (1e-3, 1, 1), the
     identity for a scan line (scan_lines.py)."""
-
     keys = np.floor(points / voxel_m).astype(np.int64)
     bricks = np.floor_divide(keys, 4)
     out = np.tile(np.eye(3), (len(points), 1, 1))
