@@ -22,6 +22,7 @@ touch one voxel in the same launch; `finalize_blocks` turns sums into distances 
 import taichi as ti
 
 from mcl3d.kernels.se3 import quat_conj, quat_exp, quat_log, quat_mul, quat_normalize, quat_rotate
+from mcl3d.kernels.spread import spread_item, spread_length
 
 BLOCK = 8
 UNKNOWN = -1  # never observed
@@ -453,7 +454,8 @@ def scan_allocate(m: ti.template(), pts: ti.types.ndarray(dtype=vec3, ndim=1),
                   q0: vec4, t0: vec3, q1: vec4, t1: vec3, min_range: ti.f32,
                   max_range: ti.f32, spacing_rad: ti.f32, behind_m: ti.f32,
                   use_normals: ti.template(), ray_p: ti.types.ndarray(dtype=vec4, ndim=1),
-                  ray_n: ti.types.ndarray(dtype=vec4, ndim=1)):
+                  ray_n: ti.types.ndarray(dtype=vec4, ndim=1), run_length: ti.i32,
+                  threads: ti.i32):
     """Pass 1 of a scan: allocate the blocks that hold samples of each point's band patch
     (exactly those scan_fuse visits), testing as few samples as that takes.
 
@@ -461,69 +463,81 @@ def scan_allocate(m: ti.template(), pts: ti.types.ndarray(dtype=vec3, ndim=1),
     otherwise repeat it: ray_p[i] = (world point, range), ray_n[i] = (normal facing the
     sensor, |cos incidence|), the latter 0 for a point that is skipped (out of range).
 
+    Runs of run_length consecutive points are spread over the cpu threads (kernels.spread).
+    """
+    delta = scan_motion(q0, q1)
+    n_runs = (n + run_length - 1) // run_length
+    for index in range(spread_length(n_runs, threads)):
+        run = spread_item(index, n_runs, threads)
+        if run >= 0:
+            for i in range(run * run_length, ti.min(n, (run + 1) * run_length)):
+                ray_n[i] = vec4(0.0)
+                if point_ok(pts[i], min_range, max_range):
+                    p, _o, _u, r, nr, c = ray_setup(pts[i], nrm[i], alpha[i], q0, t0, delta,
+                                                    t1, use_normals)
+                    ray_p[i] = vec4(p, r)
+                    ray_n[i] = vec4(nr, c)
+                    allocate_patch(m, p, nr, footprint_steps(m, r, spacing_rad), behind_m)
+
+
+@ti.func
+def allocate_patch(m: ti.template(), p: vec3, nr: vec3, k: ti.i32, behind_m: ti.f32):
+    """Allocate the blocks of the band patch of half-width k around world point p.
+
     The samples lie in the parallelepiped of the 8 corner samples (the 4 corner columns at
     their first and last depth), so when the corners' blocks fill the box of blocks they
     span, those are the blocks (the common case: a patch inside one block or across one
     face). Otherwise column by column: a column whose two end samples lie in the same or
     face-adjacent blocks covers just those two; only the rest walk all their samples.
     """
-    delta = scan_motion(q0, q1)
-    for i in range(n):
-        ray_n[i] = vec4(0.0)
-        if point_ok(pts[i], min_range, max_range):
-            p, _o, _u, r, nr, c = ray_setup(pts[i], nrm[i], alpha[i], q0, t0, delta, t1,
-                                            use_normals)
-            ray_p[i] = vec4(p, r)
-            ray_n[i] = vec4(nr, c)
-            k = footprint_steps(m, r, spacing_rad)
-            e1, e2 = patch_tangents(nr, k)
-            pg = world_to_grid(m, p)  # the same sample positions as scan_fuse
-            nv = nr * (1.0 / m.voxel_size_m)
-            n_s = band_samples(m, behind_m)
-            s_first = -behind_m
-            s_last = ti.min(-behind_m + (n_s - 1) * m.voxel_size_m, m.truncation_m)
-            by_corners = False
-            if k > 0:
-                lo = ivec3(1 << 30)
-                hi = ivec3(-(1 << 30))
+    e1, e2 = patch_tangents(nr, k)
+    pg = world_to_grid(m, p)  # the same sample positions as scan_fuse
+    nv = nr * (1.0 / m.voxel_size_m)
+    n_s = band_samples(m, behind_m)
+    s_first = -behind_m
+    s_last = ti.min(-behind_m + (n_s - 1) * m.voxel_size_m, m.truncation_m)
+    by_corners = False
+    if k > 0:
+        lo = ivec3(1 << 30)
+        hi = ivec3(-(1 << 30))
+        for c in ti.static(range(8)):
+            cb = patch_block(pg, e1, e2, nv, k, k if c & 1 else 0, k if c & 2 else 0,
+                             s_last if c & 4 else s_first)
+            lo = ti.min(lo, cb)
+            hi = ti.max(hi, cb)
+        span = hi - lo
+        if (span <= 1).all():
+            mask = 0
+            for c in ti.static(range(8)):
+                cb = patch_block(pg, e1, e2, nv, k, k if c & 1 else 0,
+                                 k if c & 2 else 0, s_last if c & 4 else s_first) - lo
+                mask |= 1 << (cb[0] * 4 + cb[1] * 2 + cb[2])
+            full = 0
+            for c in ti.static(range(8)):
+                if c >> 2 <= span[0] and (c >> 1) & 1 <= span[1] and c & 1 <= span[2]:
+                    full |= 1 << c
+            if mask == full:
+                by_corners = True
                 for c in ti.static(range(8)):
-                    cb = patch_block(pg, e1, e2, nv, k, k if c & 1 else 0, k if c & 2 else 0,
-                                     s_last if c & 4 else s_first)
-                    lo = ti.min(lo, cb)
-                    hi = ti.max(hi, cb)
-                span = hi - lo
-                if (span <= 1).all():
-                    mask = 0
-                    for c in ti.static(range(8)):
-                        cb = patch_block(pg, e1, e2, nv, k, k if c & 1 else 0,
-                                         k if c & 2 else 0, s_last if c & 4 else s_first) - lo
-                        mask |= 1 << (cb[0] * 4 + cb[1] * 2 + cb[2])
-                    full = 0
-                    for c in ti.static(range(8)):
-                        if c >> 2 <= span[0] and (c >> 1) & 1 <= span[1] and c & 1 <= span[2]:
-                            full |= 1 << c
-                    if mask == full:
-                        by_corners = True
-                        for c in ti.static(range(8)):
-                            if (mask >> c) & 1:
-                                allocate_block(m, lo[0] + (c >> 2), lo[1] + ((c >> 1) & 1),
-                                               lo[2] + (c & 1))
-            if not by_corners:
-                for a, b in ti.ndrange(k + 1, k + 1):
-                    first = patch_block(pg, e1, e2, nv, k, a, b, s_first)
-                    last = patch_block(pg, e1, e2, nv, k, a, b, s_last)
-                    allocate_block(m, first[0], first[1], first[2])
-                    if ti.abs(last - first).sum() == 1:
-                        allocate_block(m, last[0], last[1], last[2])
-                    elif (last != first).any():
-                        base = column_base(pg, e1, e2, k, a, b)
-                        prev = first
-                        for j in range(1, n_s):
-                            sj = ti.min(-behind_m + j * m.voxel_size_m, m.truncation_m)
-                            g = ti.cast(ti.floor(base + sj * nv), ti.i32) >> 3
-                            if (g != prev).any():
-                                allocate_block(m, g[0], g[1], g[2])
-                                prev = g
+                    if (mask >> c) & 1:
+                        allocate_block(m, lo[0] + (c >> 2), lo[1] + ((c >> 1) & 1),
+                                       lo[2] + (c & 1))
+    if not by_corners:
+        for a, b in ti.ndrange(k + 1, k + 1):
+            first = patch_block(pg, e1, e2, nv, k, a, b, s_first)
+            last = patch_block(pg, e1, e2, nv, k, a, b, s_last)
+            allocate_block(m, first[0], first[1], first[2])
+            if ti.abs(last - first).sum() == 1:
+                allocate_block(m, last[0], last[1], last[2])
+            elif (last != first).any():
+                base = column_base(pg, e1, e2, k, a, b)
+                prev = first
+                for j in range(1, n_s):
+                    sj = ti.min(-behind_m + j * m.voxel_size_m, m.truncation_m)
+                    g = ti.cast(ti.floor(base + sj * nv), ti.i32) >> 3
+                    if (g != prev).any():
+                        allocate_block(m, g[0], g[1], g[2])
+                        prev = g
 
 
 @ti.func
@@ -682,7 +696,7 @@ def scan_fuse(m: ti.template(), ray_p: ti.types.ndarray(dtype=vec4, ndim=1),
               ray_n: ti.types.ndarray(dtype=vec4, ndim=1),
               alpha: ti.types.ndarray(dtype=ti.f32, ndim=1), n: ti.i32, t0: vec3, t1: vec3,
               spacing_rad: ti.f32, behind_m: ti.f32, carve: ti.template(),
-              sigma_weight_m: ti.f32, run_length: ti.i32):
+              sigma_weight_m: ti.f32, run_length: ti.i32, threads: ti.i32):
     """Pass 2 of a scan: the truncation band around each point + free-space carving, from
     the rays that scan_allocate set up (ray_p, ray_n; t0, t1 and alpha give each ray's
     sensor position).
@@ -709,7 +723,8 @@ def scan_fuse(m: ti.template(), ray_p: ti.types.ndarray(dtype=vec4, ndim=1),
     of run_length consecutive points and sums their one-column bands in registers (slot j
     holds depth sample j), writing a voxel's sums once, when the next point's sample j
     leaves it. The sums are those of updating voxel by voxel, only added in another order,
-    so run_length changes no result beyond f32 rounding.
+    so run_length changes no result beyond f32 rounding. Runs are spread over the cpu
+    threads as in scan_allocate.
     """
     trunc = m.truncation_m
     k_w = -0.5 / (sigma_weight_m * sigma_weight_m)
@@ -718,63 +733,66 @@ def scan_fuse(m: ti.template(), ray_p: ti.types.ndarray(dtype=vec4, ndim=1),
     s_dense = 0.0  # neighbouring rays are half a voxel apart at this range
     if spacing_rad > 0.0:
         s_dense = 0.5 * m.voxel_size_m / spacing_rad
-    for run in range((n + run_length - 1) // run_length):
-        slot_g = ti.Matrix.zero(ti.i32, n_max, 3)
-        slot_wd = ti.Vector.zero(ti.f32, n_max)
-        slot_w = ti.Vector.zero(ti.f32, n_max)
-        cb = ivec3(-(1 << 30))  # the block of the last flushed slot and its id
-        bid = UNKNOWN
-        for i in range(run * run_length, ti.min(n, (run + 1) * run_length)):
-            c = ray_n[i][3]
-            if c > 0.0:
-                p = ray_p[i].xyz
-                r = ray_p[i][3]
-                nr = ray_n[i].xyz
-                o = t0 + alpha[i] * (t1 - t0)  # as ray_setup
-                u = (p - o) / ti.max(r, 1e-9)
-                if ti.static(carve):
-                    s_free = r - trunc / c
-                    # near the sensor only a subset of the rays carves (see the docstring)
-                    s_voxels = s_dense / ti.cast(lowest_bit(i), ti.f32)
-                    carve_ray(m, o + s_free * u, -u, s_free - s_voxels,
-                              s_free - 2.0 * s_voxels)
-                k = footprint_steps(m, r, spacing_rad)
-                if k > 0:
-                    e1, e2 = tangent_basis(nr)
-                    band_patch(m, p, nr, k, behind_m, k_w, e1, e2)
-                else:
-                    pg = world_to_grid(m, p)
-                    nv = nr * (1.0 / m.voxel_size_m)
-                    last = ivec3(-(1 << 30))
-                    for j in ti.static(range(n_max)):
-                        if j < n_s:
-                            s = ti.min(-behind_m + j * m.voxel_size_m, trunc)
-                            g = ti.cast(ti.floor(pg + s * nv), ti.i32)
-                            if (g != last).any():
-                                last = g
-                                v = voxel_center(m, g) - p
-                                d = v.dot(nr)
-                                if -behind_m <= d <= trunc:
-                                    w = exp_nonpositive(k_w * v.dot(v))
-                                    same = (slot_g[j, 0] == g[0] and slot_g[j, 1] == g[1]
-                                            and slot_g[j, 2] == g[2])
-                                    if slot_w[j] > 0.0 and not same:
-                                        gs = ivec3(slot_g[j, 0], slot_g[j, 1], slot_g[j, 2])
-                                        if ((gs >> 3) != cb).any():
-                                            cb = gs >> 3
-                                            bid = block_id(m, cb)
-                                        if bid >= 0:
-                                            add_sums(m, bid, gs, slot_wd[j], slot_w[j])
-                                        slot_w[j] = 0.0
-                                        slot_wd[j] = 0.0
-                                    for a in ti.static(range(3)):
-                                        slot_g[j, a] = g[a]
-                                    slot_wd[j] += w * d
-                                    slot_w[j] += w
-        for j in ti.static(range(n_max)):
-            if slot_w[j] > 0.0:
-                accumulate_sums(m, ivec3(slot_g[j, 0], slot_g[j, 1], slot_g[j, 2]),
-                                slot_wd[j], slot_w[j])
+    n_runs = (n + run_length - 1) // run_length
+    for index in range(spread_length(n_runs, threads)):
+        run = spread_item(index, n_runs, threads)
+        if run >= 0:
+            slot_g = ti.Matrix.zero(ti.i32, n_max, 3)
+            slot_wd = ti.Vector.zero(ti.f32, n_max)
+            slot_w = ti.Vector.zero(ti.f32, n_max)
+            cb = ivec3(-(1 << 30))  # the block of the last flushed slot and its id
+            bid = UNKNOWN
+            for i in range(run * run_length, ti.min(n, (run + 1) * run_length)):
+                c = ray_n[i][3]
+                if c > 0.0:
+                    p = ray_p[i].xyz
+                    r = ray_p[i][3]
+                    nr = ray_n[i].xyz
+                    o = t0 + alpha[i] * (t1 - t0)  # as ray_setup
+                    u = (p - o) / ti.max(r, 1e-9)
+                    if ti.static(carve):
+                        s_free = r - trunc / c
+                        # near the sensor only a subset of the rays carves (see the docstring)
+                        s_voxels = s_dense / ti.cast(lowest_bit(i), ti.f32)
+                        carve_ray(m, o + s_free * u, -u, s_free - s_voxels,
+                                  s_free - 2.0 * s_voxels)
+                    k = footprint_steps(m, r, spacing_rad)
+                    if k > 0:
+                        e1, e2 = tangent_basis(nr)
+                        band_patch(m, p, nr, k, behind_m, k_w, e1, e2)
+                    else:
+                        pg = world_to_grid(m, p)
+                        nv = nr * (1.0 / m.voxel_size_m)
+                        last = ivec3(-(1 << 30))
+                        for j in ti.static(range(n_max)):
+                            if j < n_s:
+                                s = ti.min(-behind_m + j * m.voxel_size_m, trunc)
+                                g = ti.cast(ti.floor(pg + s * nv), ti.i32)
+                                if (g != last).any():
+                                    last = g
+                                    v = voxel_center(m, g) - p
+                                    d = v.dot(nr)
+                                    if -behind_m <= d <= trunc:
+                                        w = exp_nonpositive(k_w * v.dot(v))
+                                        same = (slot_g[j, 0] == g[0] and slot_g[j, 1] == g[1]
+                                                and slot_g[j, 2] == g[2])
+                                        if slot_w[j] > 0.0 and not same:
+                                            gs = ivec3(slot_g[j, 0], slot_g[j, 1], slot_g[j, 2])
+                                            if ((gs >> 3) != cb).any():
+                                                cb = gs >> 3
+                                                bid = block_id(m, cb)
+                                            if bid >= 0:
+                                                add_sums(m, bid, gs, slot_wd[j], slot_w[j])
+                                            slot_w[j] = 0.0
+                                            slot_wd[j] = 0.0
+                                        for a in ti.static(range(3)):
+                                            slot_g[j, a] = g[a]
+                                        slot_wd[j] += w * d
+                                        slot_w[j] += w
+            for j in ti.static(range(n_max)):
+                if slot_w[j] > 0.0:
+                    accumulate_sums(m, ivec3(slot_g[j, 0], slot_g[j, 1], slot_g[j, 2]),
+                                    slot_wd[j], slot_w[j])
 
 
 # ------------------------------------------------------------ points with normals

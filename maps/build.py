@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from pydantic import Field, model_validator
 
+from mcl3d import runtime
 from mcl3d.config import Section
 from mcl3d.errors import MapError, PointCloudError
 from mcl3d.maps.tsdf import BLOCK, CHUNK_CELLS, MapGeometry, TsdfMap
@@ -234,8 +235,12 @@ class ScanFuser:
         m = self.tsdf
         n = len(scan.points_l)
         before = m.requested_blocks
+        threads = runtime.loop_threads()
+        # runs only serve to spread points over cpu threads; a GPU thread takes one point
+        # (runs of several lost points on Mesa's lavapipe)
+        runs = run_length() if threads > 1 else 1
         k.scan_allocate(m, scan.points_l, scan.normals_l, scan.alpha, n, *scan.args,
-                        *self._ray_buffers(n))
+                        *self._ray_buffers(n), runs, threads)
         m.init_new_blocks(before, m.requested_blocks)
 
     def update(self, scan: PreparedScan, carve: bool) -> None:
@@ -245,15 +250,14 @@ class ScanFuser:
 
         _q0, t0, _q1, t1, _lo, _hi, spacing, behind, _normals = scan.args
         k.scan_fuse(self.tsdf, *self._rays, scan.alpha, len(scan.points_l), t0, t1, spacing,
-                    behind, carve, self.config.sigma_w_m, run_length())
+                    behind, carve, self.config.sigma_w_m, run_length(),
+                    runtime.loop_threads())
 
 
 def run_length() -> int:
     """Consecutive points one thread fuses (kernels.tsdf.scan_fuse): long runs on cpu, whose
     few threads gain most from merged voxel updates, short ones on GPUs, which need
     thousands of threads."""
-    from mcl3d import runtime
-
     info = runtime.current()
     return CPU_RUN_LENGTH if info is None or info.backend == "cpu" else GPU_RUN_LENGTH
 

@@ -117,6 +117,15 @@ def init(backend: str = "auto", *, offline_cache: bool = True, debug: bool = Fal
     raise BackendUnavailable(_missing_message(backend))
 
 
+def loop_threads() -> int:
+    """Threads the cpu backend splits a parallel loop over (kernels.spread), 1 elsewhere."""
+    if _current is None or _current.backend != "cpu":
+        return 1
+    from taichi.lang import impl
+
+    return max(1, int(impl.current_cfg().cpu_max_num_threads))
+
+
 def _device_name(backend: str) -> str:
     if backend == "cpu":
         return _cpu_name()

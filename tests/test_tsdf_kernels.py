@@ -168,9 +168,9 @@ def test_fusion_of_a_ray_and_a_scan_line_matches_numpy(ti_runtime):
     alpha = np.zeros(1, np.float32)
     rays = _ray_buffers(1)
     k.scan_allocate(tsdf, pts, np.zeros_like(pts), alpha, 1, q, t, q, t, 0.1, 100.0, 0.0,
-                    behind, False, *rays)
+                    behind, False, *rays, 64, 1)
     tsdf.init_new_blocks(0, tsdf.requested_blocks)
-    k.scan_fuse(tsdf, *rays, alpha, 1, t, t, 0.0, behind, True, sigma, 64)
+    k.scan_fuse(tsdf, *rays, alpha, 1, t, t, 0.0, behind, True, sigma, 64, 1)
     band, free_hits, blocks, free_blocks = _ray_reference(origin, point, tsdf, behind, sigma)
     data, got = _pool_sums(tsdf)
     assert {tuple(c) for c in data.coords} == blocks
@@ -194,7 +194,8 @@ def test_fusion_of_a_ray_and_a_scan_line_matches_numpy(ti_runtime):
 
 def _check_scan_line(tsdf):
     """Several points, some in one voxel in a row: their band sums are merged in registers
-    in runs of any length (3: a run starts inside the row), with the same result. With a
+    in runs of any length (3: a run starts inside the row), with the same result, however
+    the runs are spread over threads (kernels.spread). With a
     ray spacing that puts rays half a voxel apart at 10 m, only a subset carves near the
     sensor (rays 1-3, 5, 6 not at all, ray 4 from 2.5 m on): fewer hits, the same band."""
     import taichi as ti
@@ -215,7 +216,8 @@ def _check_scan_line(tsdf):
     rays = _ray_buffers(len(pts))
     args = (pts, np.zeros_like(pts), alpha, len(pts), q, t, q, t, 0.1, 100.0)
     all_hits = None
-    for run_length, spacing in ((1, 0.0), (3, 0.0), (64, 0.0), (64, 0.005)):
+    for run_length, spacing, threads in ((1, 0.0, 2), (3, 0.0, 3), (64, 0.0, 1),
+                                         (64, 0.005, 1)):
         sums, free_hits, blocks, free_blocks = _scan_reference(origin, points, tsdf, behind,
                                                                sigma, spacing)
         assert len(sums) > 15 and len(free_hits) > (0 if spacing else 10) and free_blocks
@@ -224,10 +226,10 @@ def _check_scan_line(tsdf):
         all_hits = free_hits
         tsdf.clear()
         tsdf.as_sums = True
-        k.scan_allocate(tsdf, *args, spacing, behind, False, *rays)
+        k.scan_allocate(tsdf, *args, spacing, behind, False, *rays, run_length, threads)
         tsdf.init_new_blocks(0, tsdf.requested_blocks)
         k.scan_fuse(tsdf, *rays, alpha, len(pts), t, t, spacing, behind, True, sigma,
-                    run_length)
+                    run_length, threads)
         data, got = _pool_sums(tsdf)
         assert {tuple(b) for b in data.coords} == blocks
         assert {tuple(b) for b in data.free_coords} == free_blocks
