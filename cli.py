@@ -14,7 +14,7 @@ from typing import Annotated
 import typer
 
 from mcl3d import __version__
-from mcl3d.errors import Mcl3dError, RunInterrupted
+from mcl3d.core.errors import Mcl3dError, RunInterrupted
 
 BACKEND_HELP = (
     "Compute backend: auto (cuda, then a hardware Vulkan GPU, then cpu), cuda, vulkan or cpu."
@@ -64,7 +64,7 @@ def _version(value: bool) -> None:
 
 
 def _check_backend(value: str | None) -> str | None:
-    from mcl3d.runtime import BACKENDS
+    from mcl3d.core.runtime import BACKENDS
 
     if value is not None and value not in BACKENDS:
         raise typer.BadParameter(f"{value!r} is not one of {', '.join(BACKENDS)}")
@@ -93,7 +93,7 @@ def main(
 
 def _init_backend(backend: str | None):
     """Start the compute runtime on the command's --backend, else the global one."""
-    from mcl3d import runtime
+    from mcl3d.core import runtime
 
     return runtime.init(backend or _Globals.backend)
 
@@ -102,7 +102,7 @@ def _init_backend(backend: str | None):
 def backends(backend: BackendOption = None) -> None:
     """List the compute backends on this machine and start the selected one."""
     from mcl3d.console import console, summary_table
-    from mcl3d.vulkan_probe import vulkan_devices
+    from mcl3d.core.vulkan_probe import vulkan_devices
 
     devices = vulkan_devices()
     vulkan_text = ", ".join(f"{d.name} ({d.device_type})" for d in devices) or "no Vulkan driver"
@@ -160,9 +160,9 @@ def eval_trajectory(
     import json
 
     from mcl3d.console import console
-    from mcl3d.evaluation import evaluate, read_pair
-    from mcl3d.outputs import check_writable, write_text_atomic
-    from mcl3d.plots import plot_evaluation, plot_format
+    from mcl3d.core.outputs import check_writable, write_text_atomic
+    from mcl3d.evaluation.metrics import evaluate, read_pair
+    from mcl3d.evaluation.plots import plot_evaluation, plot_format
 
     for path in (plot, json_path):
         if path is not None:
@@ -237,7 +237,7 @@ def info(
 ) -> None:
     """Describe a log like `ros2 bag info`: topics, types, counts, rates, frames, cloud layout."""
     from mcl3d.console import console
-    from mcl3d.logs.info import log_info, render
+    from mcl3d.io.logs.info import log_info, render
 
     result = log_info(log, max_scans=scans, points_topic=points_topic, imu_topic=imu_topic,
                       odom_topic=odom_topic, gt_topic=gt_topic)
@@ -328,9 +328,9 @@ def build_map(
     backend: BackendOption = None,
 ) -> None:
     """Build a TSDF map from a log with poses, a point-cloud map, a mesh or a HATSDF map."""
-    from mcl3d import config as cfg
-    from mcl3d.build_map import BuildMapPipeline, summary_rows
     from mcl3d.console import console, summary_table
+    from mcl3d.core import config as cfg
+    from mcl3d.mapping.pipeline import BuildMapPipeline, summary_rows
     from mcl3d.maps.build import BuildConfig
 
     settings = cfg.load(BuildConfig, config, {
@@ -358,12 +358,12 @@ def map_info(
     """Print a map's header and statistics; optionally export it for viewers."""
     import json
 
-    from mcl3d.build_map import map_rows
     from mcl3d.console import console, summary_table
+    from mcl3d.core.outputs import check_writable
+    from mcl3d.mapping.pipeline import map_rows
     from mcl3d.maps import export
     from mcl3d.maps.io import read_blocks
     from mcl3d.maps.tsdf import block_stats
-    from mcl3d.outputs import check_writable
 
     for path in (export_mesh, export_points):
         if path:
@@ -394,7 +394,7 @@ def _localize_overrides(init: str, init_std: str | None, particles: int | None,
                         min_particles: int | None, max_particles: int | None,
                         points: int | None, seed: int | None, height_band: str | None,
                         motion: str | None, max_scans: int | None) -> dict:
-    from mcl3d.particle_init import parse_floats
+    from mcl3d.localization.initialization import parse_floats
 
     o: dict = {"localizer.seed": seed, "localizer.sensor.points": points,
                "motion_source.source": motion, "max_scans": max_scans}
@@ -457,9 +457,9 @@ def localize(
     backend: BackendOption = None,
 ) -> None:
     """6-DoF Monte Carlo localization of a log in a TSDF map (global or tracking)."""
-    from mcl3d import config as config_mod
     from mcl3d.console import console, make_progress, summary_table
-    from mcl3d.localize import LocalizeConfig, Topics, run, summary_rows
+    from mcl3d.core import config as config_mod
+    from mcl3d.localization.pipeline import LocalizeConfig, Topics, run, summary_rows
 
     if motion is not None and motion not in ("auto", "odom", "imu", "constant_velocity"):
         raise typer.BadParameter("--motion must be auto, odom, imu or constant_velocity")
@@ -541,7 +541,7 @@ def odometry(
 ) -> None:
     """LiDAR(-inertial) odometry: scan-to-model GICP against recent keyframes."""
     from mcl3d.console import console, summary_table
-    from mcl3d.odometry_pipeline import OdometryRequest, run
+    from mcl3d.odometry.pipeline import OdometryRequest, run
 
     info = _init_backend(backend)
     overrides = {"voxel_size_m": voxel_size, "map_voxel_size_m": map_voxel_size,
@@ -606,7 +606,7 @@ def slam(
     """Range-based 6-DoF Monte Carlo SLAM: particles with their own keyframe poses, corrected
     by Gauss-Newton steps on a GICP likelihood when they close a loop."""
     from mcl3d.console import console, summary_table
-    from mcl3d.slam_pipeline import SlamRequest, run
+    from mcl3d.slam.pipeline import SlamRequest, run
 
     overrides = {"particles": particles, "fov_deg": fov, "seed": seed,
                  "odometry.use_imu": False if no_imu else None}
@@ -620,7 +620,7 @@ def slam(
 
 
 def slam_rows(s: dict, info, out: Path) -> list[tuple[str, str]]:
-    from mcl3d.build_map import format_bytes
+    from mcl3d.mapping.pipeline import format_bytes
 
     ms = s["ms_per_frame"]
     stages = ", ".join(f"{k} {v:.0f}" for k, v in s["ms_per_stage"].items() if v >= 0.5)

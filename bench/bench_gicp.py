@@ -36,7 +36,7 @@ DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "hdl32_p
 
 
 def errors(T, reference):
-    from mcl3d.geometry import rotation_angle, se3_inverse
+    from mcl3d.core.geometry import rotation_angle, se3_inverse
 
     D = se3_inverse(reference) @ T
     return float(np.linalg.norm(D[:3, 3])), float(np.degrees(rotation_angle(D[:3, :3])))
@@ -63,7 +63,7 @@ def median_time(fn, repeats):
 def pairwise(args, target_raw, source_raw, reference):
     import small_gicp
 
-    from mcl3d.registration import align, preprocess
+    from mcl3d.registration.align import align, preprocess
 
     ds, k, rows = args.downsample, args.k_neighbors, []
     target, source = preprocess(target_raw, ds, k), preprocess(source_raw, ds, k)
@@ -115,9 +115,9 @@ def pairwise(args, target_raw, source_raw, reference):
 def batched(args, target, source, reference):
     import taichi as ti
 
-    from mcl3d.batch_gicp import BatchGicp
-    from mcl3d.gaussian_voxels import GaussianVoxelMaps
-    from mcl3d.geometry import se3, so3_exp
+    from mcl3d.core.geometry import se3, so3_exp
+    from mcl3d.registration.batch_gicp import BatchGicp
+    from mcl3d.registration.gaussian_voxels import GaussianVoxelMaps
 
     rng = np.random.default_rng(0)
     maps = GaussianVoxelMaps(max_maps=1, buckets_per_map=1 << 15, max_points=len(target))
@@ -211,9 +211,9 @@ def main() -> None:
 
     from rich.table import Table
 
-    from mcl3d import runtime
     from mcl3d.console import console
-    from mcl3d.logs.cloud_files import read_cloud_file
+    from mcl3d.core import runtime
+    from mcl3d.io.logs.cloud_files import read_cloud_file
 
     info = runtime.init(args.backend)
     target_raw = read_cloud_file(args.data / "251370668.pcd").points.astype(np.float64)
@@ -221,7 +221,7 @@ def main() -> None:
     reference = np.loadtxt(args.data / "T_target_source.txt")
 
     if args.skip_pairwise:
-        from mcl3d.registration import preprocess
+        from mcl3d.registration.align import preprocess
 
         rows = []
         target = preprocess(target_raw, args.downsample, args.k_neighbors)

@@ -8,8 +8,8 @@ scan, and its throughput in particle*points/s. Warm means the map blocks that th
 are already in the cpu's L3 cache; inside an update (a new scan) the kernel runs cold, ~1.5x
 slower on 2 cpu cores, which the likelihood stage shows.
 The baseline, measured in the same run, is the NumPy-vectorised implementation of the same
-sensor model (mcl3d.sensor_model.scan_log_likelihood_numpy) on a subset of the particles
-(its cost is linear in N); the table shows the Taichi/NumPy ratio. Also compares the
+sensor model (mcl3d.localization.sensor_model.scan_log_likelihood_numpy) on a subset of the
+particles (its cost is linear in N); the table shows the Taichi/NumPy ratio. Also compares the
 kernel with and without the coarse-block cache and with an f16 map.
 
 Data: a simulated office log and its 5 cm map, made with `mcl3d simulate` and
@@ -47,7 +47,7 @@ def ensure_data(cache: Path, log: Path | None, map_path: Path | None) -> tuple[P
 
 
 def first_scan(log: Path):
-    from mcl3d.logs.reader import LogReader
+    from mcl3d.io.logs.reader import LogReader
 
     with LogReader(log) as reader:
         scan = next(iter(reader.scans()))
@@ -71,7 +71,7 @@ def kernel_seconds(loc, pts, cache_block: bool, repeats: int) -> tuple[float, fl
 
 
 def numpy_seconds_per_particle(host, loc, pts, n_sub: int) -> float:
-    from mcl3d.sensor_model import scan_log_likelihood_numpy
+    from mcl3d.localization.sensor_model import scan_log_likelihood_numpy
 
     pos, quat, _ = loc.particles.host()
     n_sub = min(n_sub, len(pos))
@@ -82,8 +82,8 @@ def numpy_seconds_per_particle(host, loc, pts, n_sub: int) -> float:
 
 
 def bench_case(tsdf, host, scan, T, n: int, m: int, repeats: int, numpy_sub: int) -> dict:
-    from mcl3d.localizer import STAGES, Localizer, LocalizerConfig
-    from mcl3d.sensor_model import reduce_scan
+    from mcl3d.localization.localizer import STAGES, Localizer, LocalizerConfig
+    from mcl3d.localization.sensor_model import reduce_scan
 
     cfg = LocalizerConfig.model_validate({
         "particles": n, "seed": 1,
@@ -147,9 +147,9 @@ def main() -> None:
     from rich.console import Console
     from rich.table import Table
 
-    from mcl3d import runtime
+    from mcl3d.core import runtime
+    from mcl3d.localization.sensor_model import HostMap
     from mcl3d.maps.io import load_map
-    from mcl3d.sensor_model import HostMap
 
     log, map_path = ensure_data(args.cache_dir, args.log, args.map)
     info = runtime.init(args.backend)

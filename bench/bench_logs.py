@@ -31,7 +31,7 @@ def rss_mb() -> float:
 
 
 def make_scan(rng, stamp_ns: int, height: int, width: int):
-    from mcl3d.logs.messages import PointCloud
+    from mcl3d.io.logs.messages import PointCloud
 
     n = height * width
     az = np.tile(np.linspace(0, 2 * np.pi, width, endpoint=False), height)
@@ -56,9 +56,9 @@ def main() -> None:
 
     from mcap.reader import make_reader
 
-    from mcl3d.logs.messages import Imu
-    from mcl3d.logs.reader import LogReader
-    from mcl3d.logs.writer import LogWriter
+    from mcl3d.io.logs.messages import Imu
+    from mcl3d.io.logs.reader import LogReader
+    from mcl3d.io.logs.writer import LogWriter
 
     rng = np.random.default_rng(0)
     scans = [make_scan(rng, 0, args.height, args.width) for _ in range(4)]  # reused payloads
@@ -91,7 +91,7 @@ def main() -> None:
                     rss_peak = max(rss_peak, rss_mb())
         read_s = time.perf_counter() - start
 
-        from mcl3d.logs.info import log_info
+        from mcl3d.io.logs.info import log_info
 
         start = time.perf_counter()
         log_info(path)

@@ -58,7 +58,7 @@ def simulate(folder: Path, world, sensor, path, duration) -> Path:
 
 def read_log(path: Path):
     """Scans (stamp_s, points, times_s), IMU rows between scans, ground truth."""
-    from mcl3d.logs.reader import LogReader
+    from mcl3d.io.logs.reader import LogReader
 
     scans, imu_chunks, gt, pending = [], [], {}, []
     with LogReader(path) as reader:
@@ -81,7 +81,7 @@ class Mcl3dRunner:
     """mcl3d odometry; the device fields are allocated once and reused for every pass."""
 
     def __init__(self, use_imu: bool):
-        from mcl3d.odometry import Odometry, OdometryConfig
+        from mcl3d.odometry.lidar_odometry import Odometry, OdometryConfig
 
         self.use_imu = use_imu
         self.odo = Odometry(OdometryConfig(use_imu=use_imu))
@@ -175,8 +175,8 @@ def timing(ms: np.ndarray) -> dict:
 
 
 def score(stamps, poses, gt):
-    from mcl3d.evaluation import evaluate
-    from mcl3d.trajectory import Trajectory
+    from mcl3d.evaluation.metrics import evaluate
+    from mcl3d.io.trajectory import Trajectory
 
     gt_stamps = np.array(sorted(gt))
     ref = Trajectory(gt_stamps, np.stack([gt[s] for s in gt_stamps]))
@@ -212,8 +212,8 @@ def main() -> None:
     from rich.console import Console
     from rich.table import Table
 
-    from mcl3d import runtime
     from mcl3d.console import console
+    from mcl3d.core import runtime
 
     info = runtime.init(args.backend)
     runners = {"mcl3d (IMU)": Mcl3dRunner(True), "mcl3d (no IMU)": Mcl3dRunner(False),

@@ -40,8 +40,8 @@ def forest_log() -> Path:
 
 
 def read_scans(log: Path, count: int):
-    from mcl3d.logs.reader import LogReader
-    from mcl3d.trajectory import read_tum
+    from mcl3d.io.logs.reader import LogReader
+    from mcl3d.io.trajectory import read_tum
 
     gt = read_tum(log.with_name(log.stem + "_gt.tum"))
     scans = []
@@ -56,7 +56,7 @@ def read_scans(log: Path, count: int):
 
 def odometry_ms(scans) -> float:
     """The front-end's median ms per scan on the same scans (the baseline)."""
-    from mcl3d.odometry import Odometry
+    from mcl3d.odometry.lidar_odometry import Odometry
 
     odo = Odometry()
     ms = []
@@ -71,9 +71,9 @@ def setup(n: int, K: int, scans, poses):
     """A SLAM back-end with K keyframes from the scans and N particles around the path."""
     import taichi as ti
 
-    from mcl3d.geometry import se3_exp
-    from mcl3d.preprocess import estimate_covariances, voxel_downsample
-    from mcl3d.slam import MonteCarloSlam, SlamConfig, thin
+    from mcl3d.core.geometry import se3_exp
+    from mcl3d.registration.preprocess import estimate_covariances, voxel_downsample
+    from mcl3d.slam.monte_carlo_slam import MonteCarloSlam, SlamConfig, thin
 
     cfg = SlamConfig(particles=n, max_keyframes=max(K + 1, 16), loop_min_travel_m=0.1)
     slam = MonteCarloSlam(cfg)
@@ -100,7 +100,7 @@ def setup(n: int, K: int, scans, poses):
 
 
 def _quats(T):
-    from mcl3d.geometry import rot_to_quat
+    from mcl3d.core.geometry import rot_to_quat
 
     return rot_to_quat(T[:, :3, :3]).astype(np.float32)
 
@@ -139,8 +139,8 @@ def one_frame(slam, num_src: int, travel_m: float, step: int) -> dict[str, float
 
 
 def main() -> None:
-    from mcl3d import runtime
-    from mcl3d.build_map import format_bytes
+    from mcl3d.core import runtime
+    from mcl3d.mapping.pipeline import format_bytes
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--backend", default="cpu")

@@ -300,7 +300,7 @@ def main() -> None:
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args()
 
-    from mcl3d import runtime
+    from mcl3d.core import runtime
     from mcl3d.maps.build import BuildConfig, _mesh_scene, estimate_normals
     from mcl3d.maps.tsdf import MapGeometry
 

@@ -6,9 +6,9 @@ the arena's stage and crate, the path's oscillations and every sensor noise; the
 so the start, is the world's: office at the corridor's west end, arena in the crate corner)
 and `mcl3d build-map` builds the map from the world mesh, both once (when first needed) and
 cached under --work. Each particle count then runs the real `mcl3d localize` pipeline
-(`mcl3d.localize.run`: cpu backend, `--init global`, `--height-band auto`, filter seed = log
-seed) in this process, so Taichi starts once; the grids a global search derives from a map
-are cached beside it (MapCache).
+(`mcl3d.localization.pipeline.run`: cpu backend, `--init global`, `--height-band auto`,
+filter seed = log seed) in this process, so Taichi starts once; the grids a global search
+derives from a map are cached beside it (MapCache).
 
 Success criterion (honest, judged against ground truth, never against the filter's own
 state): the estimate of each of the last `--tail` scans of the run is within 0.2 m and 3 deg
@@ -88,8 +88,8 @@ def make_kidnap_data(work: Path, seed: int, duration_s: float) -> tuple[Path, Pa
 
 def kidnap_once(work: Path, seed: int, args, cache: MapCache) -> dict:
     """One kidnap run: detection, re-seeding and the scan of the recovery."""
-    from mcl3d.localize import LocalizeConfig, run
-    from mcl3d.trajectory import read_tum
+    from mcl3d.io.trajectory import read_tum
+    from mcl3d.localization.pipeline import LocalizeConfig, run
 
     log, tsdf, gt_tum = make_kidnap_data(work, seed, args.kidnap_duration)
     cache.current = tsdf
@@ -119,8 +119,8 @@ def kidnap_once(work: Path, seed: int, args, cache: MapCache) -> dict:
 
 
 def scan_errors(out: Path, gt_tum: Path) -> tuple[np.ndarray, np.ndarray]:
-    from mcl3d import geometry
-    from mcl3d.trajectory import read_tum
+    from mcl3d.core import geometry
+    from mcl3d.io.trajectory import read_tum
 
     est = read_tum(out / "trajectory.tum")
     gt = read_tum(gt_tum)
@@ -160,14 +160,14 @@ class MapCache:
     wrapping the two functions the Localizer calls; `current` names the map being run."""
 
     def __init__(self):
-        import mcl3d.localizer
-        import mcl3d.sensor_model
+        import mcl3d.localization.localizer
+        import mcl3d.localization.sensor_model
 
         self.current: Path | None = None
-        self._free = mcl3d.localizer.free_cells
-        self._coarse = mcl3d.sensor_model.coarse_field
-        mcl3d.localizer.free_cells = self.free_cells
-        mcl3d.sensor_model.coarse_field = self.coarse_field
+        self._free = mcl3d.localization.localizer.free_cells
+        self._coarse = mcl3d.localization.sensor_model.coarse_field
+        mcl3d.localization.localizer.free_cells = self.free_cells
+        mcl3d.localization.sensor_model.coarse_field = self.coarse_field
 
     def _path(self, kind: str, cfg) -> Path:
         import hashlib
@@ -176,7 +176,7 @@ class MapCache:
         return self.current.with_name(f"{self.current.stem}_{kind}_{key}.npz")
 
     def free_cells(self, tsdf, cfg):
-        from mcl3d.particle_init import FreeCells
+        from mcl3d.localization.initialization import FreeCells
 
         path = self._path("free", cfg)
         if path.exists():
@@ -187,7 +187,7 @@ class MapCache:
         return cells
 
     def coarse_field(self, tsdf, cfg):
-        from mcl3d.sensor_model import CoarseField
+        from mcl3d.localization.sensor_model import CoarseField
 
         path = self._path("coarse", cfg)
         if path.exists():
@@ -217,8 +217,8 @@ class StopWhenStable:
 
 
 def localize_once(log: Path, tsdf: Path, out: Path, n: int, seed: int, args) -> dict:
-    from mcl3d.errors import RunInterrupted
-    from mcl3d.localize import LocalizeConfig, run
+    from mcl3d.core.errors import RunInterrupted
+    from mcl3d.localization.pipeline import LocalizeConfig, run
 
     cfg = LocalizeConfig.model_validate({"max_scans": args.max_scans, "localizer": {
         "particles": n, "seed": seed, "init": {"mode": "global"}}})
@@ -321,7 +321,7 @@ def main() -> None:
     if args.quick:
         args.seeds, args.particles = [1, 2], [10_000, 30_000]
     args.work.mkdir(parents=True, exist_ok=True)
-    from mcl3d import runtime
+    from mcl3d.core import runtime
 
     info = runtime.init("cpu")
     cache = MapCache()

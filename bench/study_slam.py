@@ -7,7 +7,7 @@ Two experiments after the paper's §IV, on simulated logs (several seeds each):
   floors, rides one floor down and drives out; scored by the final height error of the
   lower floor, with and without the IMU.
 
-Each run goes through `mcl3d.slam_pipeline.run`, the code behind `mcl3d slam`. ATEs are
+Each run goes through `mcl3d.slam.pipeline.run`, the code behind `mcl3d slam`. ATEs are
 SE(3)-aligned RMSE (`evo_ape -a`). Logs are cached under bench/results/study_slam/.
 
     python bench/study_slam.py [--particles 2000] [--seeds 1 2 3] [--cases forest] \
@@ -51,7 +51,7 @@ def simulate(case: dict, seed: int) -> Path:
 def floor_error_m(out: Path, log: Path) -> float:
     """Height error of the representative's last pose (the lower floor) after aligning the
     trajectory's start (before the ride) with the ground truth."""
-    from mcl3d.trajectory import read_tum
+    from mcl3d.io.trajectory import read_tum
 
     est = read_tum(out / "slam.tum")
     gt = read_tum(log.with_name(log.stem + "_gt.tum"))
@@ -61,8 +61,8 @@ def floor_error_m(out: Path, log: Path) -> float:
 
 
 def main() -> None:
-    from mcl3d import runtime
-    from mcl3d.slam_pipeline import SlamRequest, run
+    from mcl3d.core import runtime
+    from mcl3d.slam.pipeline import SlamRequest, run
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--particles", type=int, default=2000)

@@ -7,7 +7,7 @@ with no data-dependent branch:
 
 - observed voxel with d < truncation: code k + TABLE_SIZE (|d| < match_dist), k the bin of
   d in the hit table (log(z_hit exp(-d^2 / (2 sigma^2)) + z_rand) over TABLE_SIZE bins of d in
-  [-truncation, truncation), filled by mcl3d.sensor_model.code_table);
+  [-truncation, truncation), filled by mcl3d.localization.sensor_model.code_table);
 - observed free space (d >= truncation, or a FREE block): CODE_FREE (log_free, a penalty);
 - unknown or outside the map: CODE_UNKNOWN (log_unknown, a neutral constant).
 
@@ -163,8 +163,8 @@ def coarse_scan_log_likelihood(field: ti.template(), origin: vec3, inv_cell: ti.
                                table: ti.template(), match_codes: ti.i32, tempering: ti.f32,
                                log_w: ti.template(), match: ti.template(),
                                ll_mean: ti.template()):
-    """The coarse search model (mcl3d.sensor_model.coarse_field): one lookup per point in a
-    dense grid of distance codes, the same outputs as scan_log_likelihood."""
+    """The coarse search model (mcl3d.localization.sensor_model.coarse_field): one lookup per
+    point in a dense grid of distance codes, the same outputs as scan_log_likelihood."""
     dims = ti.static(field.shape)
     ti.loop_config(block_dim=64)
     for k in range(n):

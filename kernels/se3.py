@@ -1,7 +1,7 @@
 """Pose helpers for kernels: f32 unit quaternions (x, y, z, w), Hamilton, plus translations.
 
 Kernels hold poses as `q` (vec4) + `t` (vec3), mapping points `p -> R(q) p + t`, the same
-`T_a_b` convention as mcl3d.geometry on the numpy side. Tangent vectors are rotation first.
+`T_a_b` convention as mcl3d.core.geometry on the numpy side. Tangent vectors are rotation first.
 """
 
 import taichi as ti

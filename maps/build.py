@@ -15,9 +15,9 @@ from dataclasses import dataclass
 import numpy as np
 from pydantic import Field, model_validator
 
-from mcl3d import runtime
-from mcl3d.config import Section
-from mcl3d.errors import MapError, PointCloudError
+from mcl3d.core import runtime
+from mcl3d.core.config import Section
+from mcl3d.core.errors import MapError, PointCloudError
 from mcl3d.maps.tsdf import BLOCK, CHUNK_CELLS, MapGeometry, TsdfMap
 
 TRUNCATION_VOXELS = 4
@@ -202,7 +202,7 @@ class ScanFuser:
         """The scan as the kernels take it (None for an empty scan); arguments as `fuse`."""
         import taichi as ti
 
-        from mcl3d.geometry import rot_to_quat
+        from mcl3d.core.geometry import rot_to_quat
 
         pts = np.ascontiguousarray(points_l, dtype=np.float32).reshape(-1, 3)
         n = len(pts)

@@ -6,9 +6,9 @@ from pathlib import Path
 
 import numpy as np
 
-from mcl3d.errors import InputError, MapError
+from mcl3d.core.errors import InputError, MapError
+from mcl3d.core.outputs import atomic_path
 from mcl3d.maps.tsdf import BLOCK, BlockData, MapGeometry
-from mcl3d.outputs import atomic_path
 
 MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off", ".gltf", ".glb")
 POINT_SUFFIXES = (".ply", ".pcd", ".xyz", ".pts")

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mcl3d.errors import ConfigError, MapError
+from mcl3d.core.errors import ConfigError, MapError
 from mcl3d.maps.tsdf import BLOCK, TsdfMap
 
 

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mcl3d.errors import InputError, MapError
+from mcl3d.core.errors import InputError, MapError
 from mcl3d.maps.tsdf import BLOCK, MapGeometry, TsdfMap
 
 CHUNK = 64

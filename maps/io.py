@@ -25,9 +25,9 @@ from pathlib import Path
 import numpy as np
 
 from mcl3d import __version__
-from mcl3d.errors import ConfigError, MapError
+from mcl3d.core.errors import ConfigError, MapError
+from mcl3d.core.outputs import atomic_path
 from mcl3d.maps.tsdf import BLOCK, BlockData, MapGeometry, TsdfMap
-from mcl3d.outputs import atomic_path
 
 FORMAT = "mcl3d-tsdf"
 FORMAT_VERSION = 1

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mcl3d.errors import ConfigError, MapError
+from mcl3d.core.errors import ConfigError, MapError
 
 BLOCK = 8
 VOXELS_PER_BLOCK = BLOCK**3
@@ -77,10 +77,11 @@ class MapGeometry:
 def _ti():
     import taichi as ti
 
-    from mcl3d import runtime
+    from mcl3d.core import runtime
 
     if runtime.current() is None:
-        raise MapError("the Taichi runtime is not started; call mcl3d.runtime.init(backend) first")
+        raise MapError("the Taichi runtime is not started; "
+                       "call mcl3d.core.runtime.init(backend) first")
     return ti
 
 

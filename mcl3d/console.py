@@ -20,6 +20,8 @@ from rich.progress import (
 )
 from rich.table import Table
 
+from mcl3d.core import progress as pipeline_progress
+
 console = Console(highlight=False)
 err_console = Console(stderr=True, highlight=False)
 
@@ -67,3 +69,31 @@ def summary_table(title: str, rows: Sequence[tuple[str, str]]) -> Table:
     for key, value in rows:
         table.add_row(key, value)
     return table
+
+
+class ProgressBars:
+    """The CLI's end of the pipeline contract: `on_progress` draws one bar per stage (rate
+    and ETA), silent outside a terminal. Use as a context manager around `run(...)`."""
+
+    def __init__(self) -> None:
+        self._progress = make_progress()
+        self._tasks: dict[str, int] = {}
+
+    def __enter__(self) -> ProgressBars:
+        self._progress.__enter__()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._progress.__exit__(*exc)
+
+    def on_progress(self, report: pipeline_progress.Progress) -> None:
+        task = self._tasks.get(report.stage)
+        if task is None:
+            task = self._progress.add_task(report.stage, total=report.total, status="", rate="")
+            self._tasks[report.stage] = task
+        rate = report.rate
+        if not rate:
+            speed = self._progress.tasks[task].speed
+            rate = f"{speed:.1f}/s" if speed else ""
+        self._progress.update(task, completed=report.done, total=report.total,
+                              status=report.status, rate=rate)

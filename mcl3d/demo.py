@@ -17,7 +17,7 @@ from pathlib import Path
 
 from rich.console import RenderableType
 
-from mcl3d.errors import ConfigError, OutputExistsError
+from mcl3d.core.errors import ConfigError, OutputExistsError
 
 
 @dataclass(frozen=True)
@@ -77,7 +77,7 @@ def _run_folder(root: Path) -> Path:
 
 def check(req: DemoRequest) -> None:
     """Refuse impossible parameters before any folder is made."""
-    from mcl3d.particles import check_capacity
+    from mcl3d.localization.particle_set import check_capacity
 
     if not math.isfinite(req.duration_s) or req.duration_s <= 0:
         raise ConfigError(f"--duration must be > 0 seconds, got {req.duration_s:g}")
@@ -88,11 +88,11 @@ def check(req: DemoRequest) -> None:
 
 def steps(req: DemoRequest):
     """Run the demo one step at a time, yielding each finished `DemoStep`."""
-    from mcl3d import config, runtime
-    from mcl3d.build_map import BuildMapPipeline
-    from mcl3d.build_map import summary_rows as map_summary_rows
     from mcl3d.console import summary_table
-    from mcl3d.logs.info import log_info, render
+    from mcl3d.core import config, runtime
+    from mcl3d.io.logs.info import log_info, render
+    from mcl3d.mapping.pipeline import BuildMapPipeline
+    from mcl3d.mapping.pipeline import summary_rows as map_summary_rows
     from mcl3d.maps.build import BuildConfig
     from mcl3d.sim.pipeline import SimulateRequest, summary_rows
     from mcl3d.sim.pipeline import run as simulate
@@ -122,9 +122,9 @@ def steps(req: DemoRequest):
 
 def localize_step(req: DemoRequest, log: Path, tsdf: Path, out: Path, backend: str) -> DemoStep:
     """Global localization of the log in its map, with the verdict against ground truth."""
-    from mcl3d import config
     from mcl3d.console import make_progress, summary_table
-    from mcl3d.localize import LocalizeConfig, run, summary_rows
+    from mcl3d.core import config
+    from mcl3d.localization.pipeline import LocalizeConfig, run, summary_rows
 
     overrides = {"localizer.init.mode": "global", "localizer.particles": req.particles,
                  "localizer.seed": req.seed, "localizer.sensor.points": req.points}

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
 
-SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+TESTS = Path(__file__).resolve().parent
+SHARED_DATA = TESTS.parents[1] / "shared" / "data"
 
 
 def pytest_addoption(parser):
@@ -17,7 +19,7 @@ def pytest_addoption(parser):
 @pytest.fixture
 def ti_runtime(request):
     """The Taichi runtime on the chosen backend (started once, restarted if a test switched it)."""
-    from mcl3d import runtime
+    from mcl3d.core import runtime
 
     return runtime.init(request.config.getoption("--backend"))
 
@@ -33,9 +35,9 @@ def shared_data() -> Path:
 @pytest.fixture
 def vulkan_runtime():
     """The Taichi runtime on Vulkan (Mesa's lavapipe in CI); skips when no driver is installed."""
-    from mcl3d import runtime
-    from mcl3d.errors import BackendUnavailable
-    from mcl3d.vulkan_probe import vulkan_devices
+    from mcl3d.core import runtime
+    from mcl3d.core.errors import BackendUnavailable
+    from mcl3d.core.vulkan_probe import vulkan_devices
 
     if not vulkan_devices():
         pytest.skip("no Vulkan driver: install mesa-vulkan-drivers and libvulkan1 (setup.sh does)")
@@ -47,8 +49,8 @@ def vulkan_runtime():
 
 VULKAN_PROCESS = """
 import pickle, sys
-from mcl3d import runtime
-from mcl3d.errors import BackendUnavailable
+from mcl3d.core import runtime
+from mcl3d.core.errors import BackendUnavailable
 try:
     runtime.init("vulkan")
 except BackendUnavailable as exc:
@@ -73,7 +75,7 @@ def on_vulkan(tmp_path):
     import subprocess
     import sys
 
-    from mcl3d.vulkan_probe import vulkan_devices
+    from mcl3d.core.vulkan_probe import vulkan_devices
 
     if not vulkan_devices():
         pytest.skip("no Vulkan driver: install mesa-vulkan-drivers and libvulkan1 (setup.sh does)")
@@ -82,8 +84,10 @@ def on_vulkan(tmp_path):
         exchange = tmp_path / f"{function.__name__}.pickle"
         exchange.write_bytes(pickle.dumps(args))
         code = VULKAN_PROCESS.format(module=function.__module__, function=function.__name__)
+        test_dir = Path(sys.modules[function.__module__].__file__).parent
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(TESTS), str(test_dir)])}
         proc = subprocess.run([sys.executable, "-c", code, str(exchange)], capture_output=True,
-                              text=True, cwd=Path(__file__).parent, timeout=600)
+                              text=True, cwd=test_dir, env=env, timeout=600)
         if proc.returncode == 77:
             pytest.skip(proc.stderr.strip())
         if proc.returncode != 0:

@@ -1,2 +1,3 @@
 """The simulator behind `mcl3d simulate`: worlds (mesh, worlds), trajectories (spline,
-trajectories), sensors (lidars, scan, raycast, imu, odometry) and the pipeline writing logs."""
+trajectories), sensors (lidars, scan, raycast, imu, wheel_odometry) and the pipeline writing
+logs."""

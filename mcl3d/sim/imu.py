@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 from pydantic import Field
 
-from mcl3d.config import Section
+from mcl3d.core.config import Section
 from mcl3d.sim.trajectories import GRAVITY_MPS2, SimTrajectory
 
 

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from pydantic import Field
 
-from mcl3d.config import Section
+from mcl3d.core.config import Section
 
 SENSORS = ("vlp16", "os0-64", "os1-64", "mid360")
 
@@ -131,7 +131,7 @@ class LivoxMid360(LidarModel):
 
 
 def make_lidar(name: str) -> LidarModel:
-    from mcl3d.errors import ConfigError
+    from mcl3d.core.errors import ConfigError
 
     if name == "vlp16":
         return SpinningLidar("vlp16", 0.015, 0.4, 100.0,

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mcl3d.outputs import atomic_open
+from mcl3d.core.outputs import atomic_open
 
 
 @dataclass

@@ -17,15 +17,15 @@ from typing import Any
 import numpy as np
 from pydantic import Field
 
-from mcl3d import config as cfgmod
-from mcl3d.config import Section
-from mcl3d.errors import ConfigError, RunInterrupted
-from mcl3d.geometry import rpy_to_rot, se3
-from mcl3d.outputs import check_writable
+from mcl3d.core import config as cfgmod
+from mcl3d.core.config import Section
+from mcl3d.core.errors import ConfigError, RunInterrupted
+from mcl3d.core.geometry import rpy_to_rot, se3
+from mcl3d.core.outputs import check_writable
 from mcl3d.sim.imu import ImuConfig
 from mcl3d.sim.lidars import SENSORS, LidarConfig
-from mcl3d.sim.odometry import OdometryConfig
 from mcl3d.sim.trajectories import TRAJECTORIES
+from mcl3d.sim.wheel_odometry import WheelOdometryConfig
 from mcl3d.sim.worlds import WORLDS
 
 TOPICS = {"points": "/lidar/points", "imu": "/imu/data", "odom": "/odom",
@@ -62,7 +62,7 @@ class SimConfig(Section):
     world: WorldConfig = WorldConfig()
     lidar: LidarConfig = LidarConfig()
     imu: ImuConfig = ImuConfig()
-    odometry: OdometryConfig = OdometryConfig()
+    odometry: WheelOdometryConfig = WheelOdometryConfig()
     map: MapExportConfig = MapExportConfig()
 
 
@@ -148,10 +148,10 @@ def run(req: SimulateRequest, progress: bool = True) -> SimulateResult:
     from mcl3d.console import track
     from mcl3d.sim.imu import ImuSimulator
     from mcl3d.sim.lidars import make_lidar
-    from mcl3d.sim.odometry import OdometrySimulator
     from mcl3d.sim.raycast import WorldCaster
     from mcl3d.sim.scan import simulate_scan
     from mcl3d.sim.trajectories import build_trajectory
+    from mcl3d.sim.wheel_odometry import WheelOdometrySimulator
     from mcl3d.sim.worlds import build_world
 
     wall0 = time.perf_counter()
@@ -172,7 +172,7 @@ def run(req: SimulateRequest, progress: bool = True) -> SimulateResult:
     caster = WorldCaster(world)
     T_base_lidar, T_base_imu = extrinsics(req.sensor)
     imu = ImuSimulator(traj, T_base_imu, cfg.imu, np.random.default_rng([req.seed, 12]))
-    odom = OdometrySimulator(traj, cfg.odometry, np.random.default_rng([req.seed, 13]))
+    odom = WheelOdometrySimulator(traj, cfg.odometry, np.random.default_rng([req.seed, 13]))
     state = _Writing(req, cfg, traj, T_base_lidar, period)
 
     scans = range(n_scans)
@@ -237,19 +237,19 @@ class _Writing:
         return self.start_ns + round(t_s * 1e9)
 
     def open_log(self):
-        from mcl3d.logs.writer import LogWriter
+        from mcl3d.io.logs.writer import LogWriter
 
         return LogWriter(self.req.output, force=self.req.force)
 
     def write_static(self, writer, T_base_imu) -> None:
-        from mcl3d.logs.messages import Transform
+        from mcl3d.io.logs.messages import Transform
 
         writer.write_tf(TOPICS["tf_static"], [
             Transform(self.start_ns, "base_link", "lidar", self.T_base_lidar),
             Transform(self.start_ns, "base_link", "imu", T_base_imu)])
 
     def write_scan(self, writer, k: int, scan) -> None:
-        from mcl3d.logs.messages import PointCloud, PoseStamped
+        from mcl3d.io.logs.messages import PointCloud, PoseStamped
 
         t = k * self.period
         stamp = self.ns(t)
@@ -265,7 +265,7 @@ class _Writing:
 
     def write_imu_odom(self, writer, imu, odom, t0: float, t1: float) -> None:
         """IMU and odometry samples with stamps in [t0, t1), in time order."""
-        from mcl3d.logs.messages import Imu, Odometry
+        from mcl3d.io.logs.messages import Imu, Odometry
 
         imu_dt, odom_dt = 1.0 / self.cfg.imu.rate_hz, 1.0 / self.cfg.odometry.rate_hz
         imu_idx = np.arange(self._imu_next, int(np.ceil(t1 / imu_dt - 1e-9)))
@@ -287,7 +287,7 @@ class _Writing:
         self.n_odom += len(t_odom)
 
     def write_sidecars(self) -> None:
-        from mcl3d.trajectory import Trajectory, write_tum
+        from mcl3d.io.trajectory import Trajectory, write_tum
 
         write_tum(sidecar(self.req.output, "gt.tum"),
                   Trajectory(np.array(self.gt_stamps), np.array(self.gt_poses)))

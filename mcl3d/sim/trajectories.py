@@ -19,8 +19,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
-from mcl3d.errors import ConfigError
-from mcl3d.geometry import se3, se3_inverse
+from mcl3d.core.errors import ConfigError
+from mcl3d.core.geometry import se3, se3_inverse
 from mcl3d.sim.spline import QuinticHermite, catmull_rom_rates, knot_accelerations
 from mcl3d.sim.worlds import World
 

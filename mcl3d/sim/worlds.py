@@ -18,8 +18,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mcl3d.errors import ConfigError
-from mcl3d.geometry import rpy_to_rot, se3
+from mcl3d.core.errors import ConfigError
+from mcl3d.core.geometry import rpy_to_rot, se3
 from mcl3d.sim.mesh import Mesh, MeshBuilder, merge
 
 WORLDS = ("office", "building", "forest", "arena")

@@ -1,0 +1,146 @@
+"""One Taichi runtime per process, on the backend the user asked for and no other.
+
+Taichi silently falls back to cpu when a backend is missing; we check the arch actually
+obtained and raise `BackendUnavailable` instead, so a benchmark never reports cpu numbers
+as GPU numbers.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+from mcl3d.core.errors import BackendUnavailable, ConfigError
+
+BACKENDS = ("auto", "cuda", "vulkan", "cpu")
+
+
+@dataclass(frozen=True)
+class RuntimeInfo:
+    backend: str  # "cuda" | "vulkan" | "cpu": what is running, never "auto"
+    device: str  # human-readable device name
+    requested: str  # what the user asked for
+
+
+_current: RuntimeInfo | None = None
+
+
+def current() -> RuntimeInfo | None:
+    """The running runtime, or None before `init`."""
+    return _current
+
+
+def _import_taichi():
+    os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "false")
+    # Taichi aborts (a C++ assertion) without HOME, as under systemd; the account's home
+    # from the password database is what HOME would have been.
+    os.environ.setdefault("HOME", str(Path.home()))
+    import taichi as ti
+
+    return ti
+
+
+def _start(backend: str, offline_cache: bool, debug: bool) -> str:
+    """ti.init on exactly `backend`; returns the arch name Taichi actually started."""
+    ti = _import_taichi()
+    arch = {"cuda": ti.cuda, "vulkan": ti.vulkan, "cpu": ti.cpu}[backend]
+    ti.reset()
+    quiet = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(quiet), contextlib.redirect_stderr(quiet):
+            ti.init(
+                arch=arch,
+                default_fp=ti.f32,
+                default_ip=ti.i32,
+                offline_cache=offline_cache,
+                debug=debug,
+                log_level=ti.ERROR,
+                enable_fallback=False,
+            )
+    except RuntimeError:
+        return "unavailable"
+    from taichi._lib import core as ti_core
+    from taichi.lang import impl
+
+    return ti_core.arch_name(impl.current_cfg().arch)
+
+
+def _cpu_name() -> str:
+    with contextlib.suppress(OSError), open("/proc/cpuinfo") as f:
+        for line in f:
+            if line.startswith("model name"):
+                return f"{line.split(':', 1)[1].strip()} ({os.cpu_count()} threads)"
+    return f"cpu ({os.cpu_count()} threads)"
+
+
+def _missing_message(backend: str) -> str:
+    if backend == "cuda":
+        return ("backend 'cuda' is not available on this machine (no NVIDIA GPU or CUDA driver "
+                "found); use --backend cpu, or --backend auto to take the best one present")
+    return ("backend 'vulkan' is not available on this machine (no Vulkan driver found); "
+            "install one (e.g. `apt-get install mesa-vulkan-drivers libvulkan1`) "
+            "or use --backend cpu")
+
+
+def _started_as(backend: str, arch_name: str) -> bool:
+    expected = {"cuda": ("cuda",), "vulkan": ("vulkan",), "cpu": ("x64", "arm64")}[backend]
+    return arch_name in expected
+
+
+def init(backend: str = "auto", *, offline_cache: bool = True, debug: bool = False) -> RuntimeInfo:
+    """Start Taichi on `backend` (auto|cuda|vulkan|cpu) and return what was started.
+
+    `auto` prefers cuda, then a hardware Vulkan device (not Mesa's software lavapipe, which
+    is slower than the cpu backend), then cpu. Calling again with the same request is a
+    no-op; with another request it restarts Taichi (fields allocated before are lost).
+    """
+    global _current
+    if backend not in BACKENDS:
+        raise ConfigError(f"unknown backend {backend!r}; choose one of {', '.join(BACKENDS)}")
+    if _current is not None and _current.requested == backend:
+        return _current
+    from mcl3d.core.vulkan_probe import vulkan_devices
+
+    if backend == "auto":
+        hardware_vulkan = [d for d in vulkan_devices() if d.is_hardware]
+        candidates = ["cuda", *(["vulkan"] if hardware_vulkan else []), "cpu"]
+    else:
+        candidates = [backend]
+    for candidate in candidates:
+        arch_name = _start(candidate, offline_cache, debug)
+        if _started_as(candidate, arch_name):
+            _current = RuntimeInfo(candidate, _device_name(candidate), backend)
+            return _current
+    raise BackendUnavailable(_missing_message(backend))
+
+
+def loop_threads() -> int:
+    """Threads the cpu backend splits a parallel loop over (kernels.spread), 1 elsewhere."""
+    if _current is None or _current.backend != "cpu":
+        return 1
+    from taichi.lang import impl
+
+    return max(1, int(impl.current_cfg().cpu_max_num_threads))
+
+
+def _device_name(backend: str) -> str:
+    if backend == "cpu":
+        return _cpu_name()
+    if backend == "vulkan":
+        from mcl3d.core.vulkan_probe import vulkan_devices
+
+        devices = vulkan_devices()
+        hardware = [d for d in devices if d.is_hardware]
+        chosen = (hardware or devices)[0] if devices else None
+        return chosen.name if chosen else "vulkan device"
+    with contextlib.suppress(Exception):
+        import subprocess
+
+        out = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"],
+                             capture_output=True, text=True, timeout=5)
+        if out.returncode == 0 and out.stdout.strip():
+            return out.stdout.strip().splitlines()[0]
+    return "CUDA device"

@@ -1,0 +1,228 @@
+"""`mcl3d info`: what a log holds, like `ros2 bag info`, computed without reading it all.
+
+Counts, start/end and duration come from the log's summary (MCAP statistics, bag indexes).
+Frame ids come from the first few messages of each topic; cloud layouts and valid-point
+counts from decoding at most `max_scans` scans per cloud topic; topic rates from each
+topic's first and last message times (MCAP; bags use the log's end time).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from mcl3d.core.errors import Mcl3dError
+from mcl3d.io.logs import ros_types as rt
+from mcl3d.io.logs.pointcloud2 import DATATYPE_NAMES, time_field_name
+from mcl3d.io.logs.reader import KINDS, LogReader
+
+MAX_SCANS = 3
+FRAME_SAMPLES = 3
+
+
+@dataclass
+class CloudInfo:
+    fields: list[tuple[str, str, int]]  # (name, datatype name, count)
+    height: int
+    width: int
+    scans_decoded: int
+    valid_min: int
+    valid_mean: float
+    valid_max: int
+    time_field: str | None
+    time_span_s: float | None  # max per-point time minus min, over the decoded scans
+
+    @property
+    def organized(self) -> bool:
+        return self.height > 1
+
+
+@dataclass
+class TopicSummary:
+    topic: str
+    msgtype: str
+    count: int | None
+    rate_hz: float | None
+    frame_ids: list[str] = field(default_factory=list)
+    cloud: CloudInfo | None = None
+
+
+@dataclass
+class LogInfo:
+    path: Path
+    format: str
+    profile: str
+    library: str
+    size_bytes: int
+    start_ns: int | None
+    end_ns: int | None
+    topics: list[TopicSummary]
+    selection: dict[str, str]  # kind -> chosen topic, "-" or why none
+
+    @property
+    def duration_s(self) -> float | None:
+        if self.start_ns is None or self.end_ns is None:
+            return None
+        return (self.end_ns - self.start_ns) * 1e-9
+
+    @property
+    def message_count(self) -> int:
+        return sum(t.count or 0 for t in self.topics)
+
+
+def _size(path: Path) -> int:
+    if path.is_dir():
+        return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
+    return path.stat().st_size
+
+
+def _cloud_info(reader: LogReader, topic: str, max_scans: int) -> tuple[CloudInfo, set[str],
+                                                                          int | None]:
+    """Layout and valid-point counts from the first `max_scans` scans of a cloud topic."""
+    valid, frames, spans, first_ns, layout = [], set(), [], None, None
+    for index, (_topic, log_ns, msg) in enumerate(reader.source.messages([topic]), start=1):
+        if first_ns is None:
+            first_ns = log_ns
+        cloud = rt.to_pointcloud(msg, f"{reader.path} topic {topic} message {index}")
+        if layout is None:
+            layout = ([(f.name, DATATYPE_NAMES.get(int(f.datatype), f"type{f.datatype}"),
+                        int(f.count)) for f in msg.fields], int(msg.height), int(msg.width))
+        valid.append(len(cloud.points))
+        frames.add(cloud.frame_id)
+        if cloud.times_s is not None and len(cloud.times_s):
+            spans.append(float(cloud.times_s.max() - cloud.times_s.min()))
+        if index >= max_scans:
+            break
+    fields, height, width = layout if layout else ([], 0, 0)
+    info = CloudInfo(fields=fields, height=height, width=width, scans_decoded=len(valid),
+                     valid_min=min(valid, default=0), valid_max=max(valid, default=0),
+                     valid_mean=float(np.mean(valid)) if valid else 0.0,
+                     time_field=time_field_name([f[0] for f in fields]),
+                     time_span_s=max(spans) if spans else None)
+    return info, frames, first_ns
+
+
+def _frames_and_first(reader: LogReader, topic: str) -> tuple[set[str], int | None]:
+    frames, first_ns = set(), None
+    try:
+        for index, (_topic, log_ns, msg) in enumerate(reader.source.messages([topic]), start=1):
+            if first_ns is None:
+                first_ns = log_ns
+            header = getattr(msg, "header", None)
+            if header is not None and hasattr(header, "frame_id"):
+                frames.add(header.frame_id)
+            for tf in getattr(msg, "transforms", None) or []:
+                frames.add(f"{tf.header.frame_id}->{tf.child_frame_id}")
+            if index >= FRAME_SAMPLES:
+                break
+    except Mcl3dError:  # an undecodable side topic (custom type, no schema) is only described
+        return frames, first_ns
+    return frames, first_ns
+
+
+def _last_ns(reader: LogReader, topic: str) -> int | None:
+    try:
+        for _topic, log_ns, _msg in reader.source.messages([topic], reverse=True):
+            return log_ns
+    except (NotImplementedError, Mcl3dError):
+        return None
+    return None
+
+
+def log_info(path: Path, *, max_scans: int = MAX_SCANS, points_topic: str | None = None,
+             imu_topic: str | None = None, odom_topic: str | None = None,
+             gt_topic: str | None = None) -> LogInfo:
+    """Describe a log (see module docstring); decodes at most `max_scans` scans per cloud topic."""
+    path = Path(path)
+    with LogReader(path, points_topic=points_topic, imu_topic=imu_topic, odom_topic=odom_topic,
+                   gt_topic=gt_topic) as reader:
+        src = reader.source
+        topics = []
+        for name, tinfo in reader.all_topics.items():
+            summary = TopicSummary(name, tinfo.msgtype, tinfo.count, None)
+            if not tinfo.decodable:
+                frames, first = set(), None
+            elif tinfo.msgtype == rt.POINTCLOUD2:
+                summary.cloud, frames, first = _cloud_info(reader, name, max_scans)
+            else:
+                frames, first = _frames_and_first(reader, name)
+            summary.frame_ids = sorted(frames)
+            last = _last_ns(reader, name) if tinfo.decodable else None
+            if last is None:
+                last = src.end_ns
+            if first is not None and last is not None and last > first and (tinfo.count or 0) > 1:
+                summary.rate_hz = (tinfo.count - 1) * 1e9 / (last - first)
+            topics.append(summary)
+        selection = {}
+        for kind in KINDS:
+            if kind in reader.problems:
+                selection[kind] = str(reader.problems[kind]).removeprefix(f"{path}: ")
+            else:
+                selection[kind] = reader.topics.get(kind) or "-"
+        return LogInfo(path=path, format=src.format, profile=src.profile, library=src.library,
+                       size_bytes=_size(path), start_ns=src.start_ns, end_ns=src.end_ns,
+                       topics=topics, selection=selection)
+
+
+def _iso(stamp_ns: int | None) -> str:
+    if stamp_ns is None:
+        return "-"
+    from datetime import datetime, timezone
+
+    when = datetime.fromtimestamp(stamp_ns // 1_000_000_000, tz=timezone.utc)
+    frac = stamp_ns % 1_000_000_000
+    return f"{when:%Y-%m-%dT%H:%M:%S}.{frac // 1_000_000:03d}Z ({stamp_ns * 1e-9:.3f} s)"
+
+
+def _cloud_table(topic: str, cloud: CloudInfo):
+    from mcl3d.console import summary_table
+
+    layout = (f"organized {cloud.height} x {cloud.width}" if cloud.organized
+              else f"unorganized, {cloud.width} points")
+    fields = " ".join(f"{n}:{t}" + (f"[{c}]" if c > 1 else "") for n, t, c in cloud.fields)
+    time_text = "none"
+    if cloud.time_field:
+        time_text = f"field {cloud.time_field!r}"
+        if cloud.time_span_s is not None:
+            time_text += f", spans {cloud.time_span_s * 1e3:.1f} ms"
+    plural = "s" if cloud.scans_decoded != 1 else ""
+    title = f"Point cloud {topic} (first {cloud.scans_decoded} scan{plural} decoded)"
+    return summary_table(title, [
+        ("layout", layout),
+        ("fields", fields),
+        ("valid points", f"min {cloud.valid_min}, mean {cloud.valid_mean:.0f}, "
+                         f"max {cloud.valid_max} (NaN/inf/zero points dropped)"),
+        ("per-point time", time_text),
+    ])
+
+
+def render(info: LogInfo):
+    """Rich tables: the log summary, its topics, and the topics mcl3d would use."""
+    from rich.table import Table
+
+    from mcl3d.console import summary_table
+
+    duration = f"{info.duration_s:.3f} s" if info.duration_s is not None else "-"
+    head = summary_table(f"Log {info.path}", [
+        ("format", f"{info.format}, profile {info.profile}"),
+        ("library", info.library),
+        ("size", f"{info.size_bytes / 1e6:.1f} MB"),
+        ("duration", duration),
+        ("start", _iso(info.start_ns)),
+        ("end", _iso(info.end_ns)),
+        ("messages", str(info.message_count)),
+    ])
+    topics = Table(title="Topics", title_justify="left")
+    for column in ("topic", "type", "count", "rate Hz", "frame"):
+        topics.add_column(column, overflow="fold",
+                          justify="right" if column in ("count", "rate Hz") else "left")
+    for t in info.topics:
+        topics.add_row(t.topic, rt.short_type(t.msgtype), "-" if t.count is None else str(t.count),
+                       "-" if t.rate_hz is None else f"{t.rate_hz:.1f}",
+                       ", ".join(t.frame_ids) or "-")
+    clouds = [_cloud_table(t.topic, t.cloud) for t in info.topics if t.cloud is not None]
+    chosen = summary_table("Topics mcl3d uses (--points-topic, --imu-topic, --odom-topic, "
+                           "--gt-topic override)", list(info.selection.items()))
+    return (head, topics, *clouds, chosen)

@@ -1,0 +1,167 @@
+"""Pose estimates from a weighted particle set: dominant cluster, hypotheses, convergence.
+
+A weighted mean over all particles is meaningless while the filter is multi-modal (the
+peer tsdf_localization averages across modes during global localization). Here the estimate
+is the mean of the heaviest cluster only; the other clusters are reported as hypotheses.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mcl3d.core import geometry
+
+
+@dataclass(frozen=True)
+class Hypothesis:
+    T_map_lidar: np.ndarray  # (4, 4) weighted mean pose of the cluster
+    covariance: np.ndarray  # (6, 6) rotation-first tangent covariance at the mean [rad^2, m^2]
+    weight: float  # fraction of the total weight in this cluster
+    n_particles: int
+
+    @property
+    def position_std_m(self) -> float:
+        """Square root of the largest positional variance (the cluster's worst-axis spread)."""
+        return float(np.sqrt(np.linalg.eigvalsh(self.covariance[3:, 3:]).max()))
+
+    @property
+    def rotation_std_rad(self) -> float:
+        return float(np.sqrt(np.linalg.eigvalsh(self.covariance[:3, :3]).max()))
+
+
+@dataclass(frozen=True)
+class ClusterParams:
+    radius_m: float = 1.0  # particles within this distance of a cluster centre belong to it
+    angle_rad: float = 0.5  # ... and within this rotation angle of the centre's orientation
+    max_hypotheses: int = 3
+    mean_shift_iterations: int = 3
+
+
+def average_quaternions(q_xyzw: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Weighted mean rotation: the principal eigenvector of sum(w q q^T) (Markley et al.)."""
+    M = (q_xyzw * weights[:, None]).T @ q_xyzw
+    q = np.linalg.eigh(M)[1][:, -1]
+    return q if q[3] >= 0 else -q
+
+
+def _angle_to(q_xyzw: np.ndarray, q_ref: np.ndarray) -> np.ndarray:
+    dot = np.clip(np.abs(q_xyzw @ q_ref), 0.0, 1.0)
+    return 2.0 * np.arccos(dot)
+
+
+def _cluster_seed(positions: np.ndarray, weights: np.ndarray, radius_m: float) -> int:
+    """Index of the heaviest particle inside the heaviest position cell."""
+    keys = np.floor(positions / radius_m).astype(np.int64)
+    _, cell = np.unique(keys, axis=0, return_inverse=True)
+    cell = cell.ravel()
+    cell_weight = np.bincount(cell, weights=weights)
+    in_best = np.flatnonzero(cell == np.argmax(cell_weight))
+    return int(in_best[np.argmax(weights[in_best])])
+
+
+def _hypothesis(positions, quats, weights, total) -> Hypothesis:
+    w = weights / weights.sum()
+    t_mean = w @ positions
+    q_mean = average_quaternions(quats, w)
+    T_mean = geometry.se3_from_tq(t_mean, q_mean)
+    T_members = geometry.se3_from_tq(positions, quats)
+    xi = geometry.se3_log(geometry.se3_inverse(T_mean)[None] @ T_members)
+    centred = xi - w @ xi
+    covariance = (centred * w[:, None]).T @ centred
+    return Hypothesis(T_mean, covariance, float(weights.sum() / total), len(weights))
+
+
+def cluster_hypotheses(positions: np.ndarray, quats_xyzw: np.ndarray, weights: np.ndarray,
+                       params: ClusterParams = ClusterParams()) -> list[Hypothesis]:
+    """Up to `max_hypotheses` clusters, heaviest first, found by seeded mean shift."""
+    positions = np.asarray(positions, dtype=np.float64)
+    quats = np.asarray(quats_xyzw, dtype=np.float64)
+    quats /= np.linalg.norm(quats, axis=1, keepdims=True)
+    weights = np.asarray(weights, dtype=np.float64)
+    total = weights.sum()
+    remaining = np.flatnonzero(weights > 0)
+    hypotheses: list[Hypothesis] = []
+    while remaining.size and len(hypotheses) < params.max_hypotheses:
+        pos, q, w = positions[remaining], quats[remaining], weights[remaining]
+        seed = _cluster_seed(pos, w, params.radius_m)
+        centre, q_centre = pos[seed], q[seed]
+        members = np.zeros(len(remaining), dtype=bool)
+        for _ in range(params.mean_shift_iterations):
+            members = (np.linalg.norm(pos - centre, axis=1) <= params.radius_m) & (
+                _angle_to(q, q_centre) <= params.angle_rad)
+            if not members.any():
+                members[seed] = True
+            wm = w[members] / w[members].sum()
+            centre = wm @ pos[members]
+            q_centre = average_quaternions(q[members], wm)
+        hypotheses.append(_hypothesis(pos[members], q[members], w[members], total))
+        remaining = remaining[~members]
+    hypotheses.sort(key=lambda h: h.weight, reverse=True)
+    return hypotheses
+
+
+def label_particles(positions: np.ndarray, quats_xyzw: np.ndarray, centres: list[np.ndarray],
+                    radius_m: float, angle_rad: float) -> np.ndarray:
+    """Index of the first cluster centre (a 4x4 pose) within `radius_m` and `angle_rad` of
+    each particle, -1 for none: cluster membership for every particle, not just a sample."""
+    labels = np.full(len(positions), -1, dtype=np.int64)
+    for c, T in enumerate(centres):
+        q_c = geometry.rot_to_quat(T[:3, :3])
+        free = labels < 0
+        near = free & (np.linalg.norm(positions - T[:3, 3], axis=1) <= radius_m)
+        near[near] = _angle_to(quats_xyzw[near], q_c) <= angle_rad
+        labels[near] = c
+    return labels
+
+
+@dataclass(frozen=True)
+class ModeFloor:
+    factors: np.ndarray  # (N,) resampling weight = weight * factor for each particle
+    rivals: int  # protected clusters besides the heaviest one
+
+
+def mode_floor(labels: np.ndarray, weights: np.ndarray, share: float, min_weight: float,
+               max_modes: int) -> ModeFloor:
+    """Resampling factors that keep at least `share` of the particles in every cluster whose
+    posterior weight is at least `min_weight` (the `max_modes` heaviest such clusters).
+
+    Resampling by weight alone lets a mode that is as good as the winner, but momentarily a
+    little lighter, die out by chance within a few updates (the 180-degree mirror pose in a
+    near-symmetric hall); once it has no particles no evidence can bring it back. Resampling
+    with weight * factor keeps its particles; each copy then carries the log-weight
+    -log(factor) of its parent, so the posterior (cluster weights, estimate) is unchanged.
+    `rivals` > 0 says another mode still holds non-negligible weight.
+    """
+    w = np.asarray(weights, dtype=np.float64)
+    w = w / w.sum()
+    k = int(labels.max()) + 1 if len(labels) else 0
+    cluster_w = np.bincount(labels[labels >= 0], weights=w[labels >= 0], minlength=k)
+    order = [c for c in np.argsort(-cluster_w, kind="stable") if cluster_w[c] >= min_weight]
+    kept = order[:max_modes]
+    factors = np.ones(len(w))
+    if len(kept) < 2:
+        return ModeFloor(factors, 0)
+    floored = [c for c in kept if cluster_w[c] < share]
+    if floored:  # they get `share` each; everything else shares the rest by weight
+        others_w = 1.0 - cluster_w[floored].sum()
+        factors[:] = (1.0 - share * len(floored)) / others_w
+        for c in floored:
+            factors[labels == c] = share / cluster_w[c]
+    return ModeFloor(factors, len(kept) - 1)
+
+
+def kld_sample_count(occupied_bins: int, epsilon: float, delta: float, n_min: int,
+                     n_max: int) -> int:
+    """Fox's KLD-sampling bound: particles needed so the KL error stays below `epsilon`
+    with probability 1 - `delta`, using the real upper normal quantile z_{1-delta}."""
+    from scipy.stats import norm
+
+    k = occupied_bins
+    if k <= 1:
+        return n_min
+    z = norm.ppf(1.0 - delta)
+    a = 2.0 / (9.0 * (k - 1))
+    n = (k - 1) / (2.0 * epsilon) * (1.0 - a + np.sqrt(a) * z) ** 3
+    return int(np.clip(np.ceil(n), n_min, n_max))

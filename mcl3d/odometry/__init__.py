@@ -1,0 +1,3 @@
+"""LiDAR(-inertial) odometry: IMU preintegration, scan-to-model GICP against keyframes, and
+the `odometry` pipeline.
+"""

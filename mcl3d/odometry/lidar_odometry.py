@@ -1,0 +1,344 @@
+"""LiDAR(-inertial) odometry: scan-to-model GICP against a local map of recent keyframes.
+
+Per scan: predict the pose (IMU preintegration when IMU samples are given, else constant
+velocity), deskew the points to the scan stamp with that motion, downsample and estimate
+covariances, register against every keyframe's Gaussian voxel maps (two resolutions, GLIM
+style) in one batched GICP, and insert the scan as a keyframe when less than
+`keyframe_overlap` of it lands in the existing keyframes' voxels. The relative motion's
+covariance is the inverse GICP Hessian; a Hessian with a near-null direction is reported as
+degenerate (a corridor, an empty or tiny scan) instead of passing silently.
+
+Poses are `T_world_lidar` at each scan's header stamp; the world frame is the first scan's
+lidar frame.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from pydantic import Field, model_validator
+
+from mcl3d.core.config import Section
+from mcl3d.core.geometry import se3_exp, se3_inverse, se3_log
+from mcl3d.odometry.imu_preintegration import Preintegrated, gravity_from_static, preintegrate
+from mcl3d.registration.preprocess import ScanGrid, deskew, estimate_covariances, voxel_downsample
+
+LOST_COVARIANCE = 1e6  # variance (rad², m²) of a motion that could not be measured
+MEDIAN_SAMPLE = 2048  # points sampled (at least this many, evenly) for the mid-sweep time
+
+
+class OdometryConfig(Section):
+    voxel_size_m: float = Field(0.25, gt=0, description="downsampling voxel edge (m)")
+    map_voxel_size_m: float | None = Field(None, gt=0, description="finest keyframe voxel "
+                                           "map edge (m), a second level twice as coarse; "
+                                           "None: GLIM's rule from the first scan's median "
+                                           "range, 0.25 m (<= 5 m) to 0.5 m (>= 20 m)")
+    map_levels: int = Field(2, ge=1, le=3, description="voxel map resolutions per keyframe")
+    k_neighbors: int = Field(10, ge=5, description="neighbours for point covariances")
+    min_range_m: float = Field(0.5, ge=0, description="drop points closer than this (m)")
+    max_range_m: float = Field(100.0, gt=0, description="drop points farther than this (m)")
+    keyframe_overlap: float = Field(0.7, gt=0, le=1, description="new keyframe when the "
+                                    "scan's overlap with the keyframes drops below this")
+    max_keyframes: int = Field(10, ge=1, le=64, description="keyframes in the local map "
+                               "(oldest evicted; the overlap test lists them all)")
+    registration_keyframes: int = Field(3, ge=1, description="register against this many "
+                                        "keyframes nearest to the predicted pose")
+    max_iterations: int = Field(20, ge=1, description="Gauss-Newton iterations per scan")
+    converged_rotation_deg: float = Field(0.1, gt=0, description="converged when a step "
+                                          "rotates less than this (small_gicp's default)")
+    converged_translation_m: float = Field(1e-3, gt=0, description="... and moves less "
+                                           "than this (small_gicp's default)")
+    deskew: bool = Field(True, description="undo motion within a sweep (per-point times)")
+    use_imu: bool = Field(True, description="predict with IMU preintegration when the log "
+                          "has an IMU")
+    degeneracy_ratio: float = Field(0.05, gt=0, description="degenerate when the Hessian's "
+                                    "translation block has min/max eigenvalue below this")
+    rotation_degeneracy_ratio: float = Field(1e-5, gt=0, description="the same for rotation")
+    validate_surfaces: bool = Field(True, description="drop points whose surface faces away "
+                                    "from the keyframe that saw it (GLIM's surface validation)")
+    min_inliers: int = Field(50, ge=6, description="fewer correspondences: registration lost")
+    buckets_per_map: int = Field(1 << 16, description="hash slots per keyframe map level "
+                                 "(a power of two, at least twice max_points)")
+    max_points: int = Field(32768, ge=16, description="most points per downsampled scan "
+                            "(more are thinned evenly)")
+
+    @model_validator(mode="after")
+    def _map_fits(self) -> OdometryConfig:
+        if self.buckets_per_map < 2 * self.max_points:
+            raise ValueError(f"buckets_per_map ({self.buckets_per_map}) must be at least twice "
+                             f"max_points ({self.max_points}) so a keyframe always fits")
+        if self.min_range_m >= self.max_range_m:
+            raise ValueError("min_range_m must be smaller than max_range_m")
+        return self
+
+
+@dataclass
+class OdometryFrame:
+    """One scan's result; `covariance` is of the relative motion, rotation first."""
+
+    stamp_ns: int
+    T_world_lidar: np.ndarray
+    T_prev_curr: np.ndarray
+    covariance: np.ndarray
+    num_points: int
+    num_inliers: int
+    iterations: int
+    converged: bool
+    keyframe: bool
+    overlap: float
+    degenerate: bool
+    warnings: list[str] = field(default_factory=list)
+    ms: float = 0.0
+
+
+def degeneracy(H: np.ndarray, translation_ratio: float, rotation_ratio: float) -> list[str]:
+    """Warnings for directions the scan barely constrains, naming them (lidar frame).
+
+    The score is the smallest over the largest eigenvalue of H's translation (or rotation)
+    block. A plane constrains its normal ~1000x more than its own directions (normal variance
+    1e-3), so a corridor scores ~0.03 along its axis where a room scores ~0.3-1. Rotation
+    blocks are naturally anisotropic (a short lever for roll, a long one for yaw), so only
+    an extreme ratio counts there."""
+    out = []
+    for name, block, limit in (("rotation", H[:3, :3], rotation_ratio),
+                               ("translation", H[3:, 3:], translation_ratio)):
+        w, U = np.linalg.eigh(0.5 * (block + block.T))
+        ratio = max(w[0], 0.0) / max(w[-1], 1e-30)
+        if ratio < limit:
+            d = U[:, 0] * np.sign(U[np.argmax(np.abs(U[:, 0])), 0])
+            out.append(f"degenerate {name}: eigenvalue ratio {ratio:.2g} along "
+                       f"[{d[0]:.2f}, {d[1]:.2f}, {d[2]:.2f}] (lidar frame)")
+    return out
+
+
+def adaptive_voxel_size(points: np.ndarray) -> float:
+    """GLIM's voxel size rule: 0.25 m + 0.25 m * clamp((median range - 5) / 15, 0, 1), the
+    median taken over at most 256 points (indoor scans get fine voxels, outdoor coarse)."""
+    step = max(1, len(points) // 256)
+    r = float(np.median(np.linalg.norm(points[::step], axis=1))) if len(points) else 0.0
+    return 0.25 + 0.25 * float(np.clip((r - 5.0) / 15.0, 0.0, 1.0))
+
+
+class Odometry:
+    """Scan-to-model odometry; `step(cloud, imu)` per scan, in stamp order."""
+
+    def __init__(self, config: OdometryConfig | None = None,
+                 T_lidar_imu: np.ndarray | None = None):
+        from mcl3d.registration.batch_gicp import BatchGicp
+        from mcl3d.registration.gaussian_voxels import GaussianVoxelMaps
+
+        self.cfg = cfg = config or OdometryConfig()
+        self.maps = GaussianVoxelMaps(max_maps=cfg.max_keyframes * cfg.map_levels,
+                                      buckets_per_map=cfg.buckets_per_map,
+                                      max_points=cfg.max_points)
+        self.gicp = BatchGicp(self.maps, max_groups=1,
+                              max_rows=cfg.max_keyframes * cfg.map_levels,
+                              max_source_points=cfg.max_points)
+        self.grid = ScanGrid(max_voxels=cfg.max_points)
+        self.reset(T_lidar_imu)
+
+    def reset(self, T_lidar_imu: np.ndarray | None = None) -> None:
+        """Start over (a new log, with its IMU extrinsic) and keep the device fields: they
+        are sized once, and a keyframe's maps are cleared when it is (re)inserted."""
+        self.T_lidar_imu = np.eye(4) if T_lidar_imu is None else np.asarray(T_lidar_imu)
+        # (slot, T_world_keyframe, T_keyframe_world)
+        self.keyframes: list[tuple[int, np.ndarray, np.ndarray]] = []
+        self.next_slot = 0
+        self.frames: list[OdometryFrame] = []
+        self.v_world_imu: np.ndarray | None = None
+        self.velocity_known = False  # after one IMU interval between two registered scans
+        self.map_voxel_size_m: float | None = None  # fixed by the first keyframe
+        self.mid_times: list[float] = []  # mid-sweep time (s) and pose of every scan
+        self.mid_poses: list[np.ndarray] = []
+        self.g_world: np.ndarray | None = None
+
+    # ---- prediction ----
+
+    def _predict(self, t_mid_s: float, imu: np.ndarray | None
+                 ) -> tuple[np.ndarray, np.ndarray, Preintegrated | None]:
+        """Predicted mid-sweep pose at `t_mid_s`, the body twist (rad/s, m/s) of the motion
+        model, and the preintegration used (or None)."""
+        last_t, last_T = self.mid_times[-1], self.mid_poses[-1]
+        dt = max(t_mid_s - last_t, 1e-6)
+        if imu is not None and self.g_world is not None and len(imu) and self.velocity_known:
+            pre = preintegrate(imu[:, 0], imu[:, 1:4], imu[:, 4:7], last_t, t_mid_s)
+            v = self.v_world_imu if self.v_world_imu is not None else np.zeros(3)
+            T_imu_pred, _ = pre.predict(last_T @ self.T_lidar_imu, v, self.g_world)
+            T_pred = T_imu_pred @ se3_inverse(self.T_lidar_imu)
+            return T_pred, se3_log(se3_inverse(last_T) @ T_pred) / dt, pre
+        if len(self.mid_poses) < 2:
+            return last_T.copy(), np.zeros(6), None
+        dt_prev = max(last_t - self.mid_times[-2], 1e-6)
+        xi = se3_log(se3_inverse(self.mid_poses[-2]) @ last_T) / dt_prev  # constant velocity
+        return last_T @ se3_exp(xi * dt), xi, None
+
+    def _initial_gravity(self, imu: np.ndarray | None) -> None:
+        """Gravity from the first IMU samples, taken to be at rest, rotated into the world by
+        the pose of the scan before them (the first scan's frame at the start)."""
+        if imu is None or len(imu) == 0 or self.g_world is not None:
+            return
+        T_world_lidar = self.mid_poses[-1] if self.mid_poses else np.eye(4)
+        R_world_imu = (T_world_lidar @ self.T_lidar_imu)[:3, :3]
+        self.g_world = gravity_from_static(imu[:, 4:7], R_world_imu)
+
+    # ---- one scan ----
+
+    def step(self, points: np.ndarray, times_s: np.ndarray | None, stamp_ns: int,
+             imu: np.ndarray | None = None) -> OdometryFrame:
+        """Register one scan. `times_s` are per-point times relative to the stamp (or None);
+        `imu` rows are (stamp_s, wx, wy, wz, ax, ay, az) in the IMU frame, covering the time
+        since the previous scan (for the first scan: samples at rest).
+
+        The scan is deskewed to, and registered at, its median point time (mid-sweep): there
+        a velocity error of the motion model barely moves the registered pose, so errors do not
+        feed back through the deskewing. The returned pose is moved back to the stamp."""
+        t_start = time.perf_counter()
+        cfg = self.cfg
+        imu = imu if cfg.use_imu else None
+        first = not self.frames
+        self._initial_gravity(imu)
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        times = None
+        if cfg.deskew and times_s is not None and len(points):
+            times = np.asarray(times_s, dtype=np.float64).ravel()
+        t_ref = 0.0
+        if times is not None:
+            # the median over an even sample (MEDIAN_SAMPLE): as good a mid-sweep time
+            stride = max(1, len(points) // MEDIAN_SAMPLE)
+            sample = points[::stride]
+            r2 = (sample * sample).sum(axis=1)  # NaN and inf fail both tests
+            kept = times[::stride][(r2 >= cfg.min_range_m**2) & (r2 <= cfg.max_range_m**2)]
+            t_ref = float(np.median(kept)) if len(kept) else 0.0
+        t_mid = stamp_ns * 1e-9 + t_ref
+        if first:
+            T_pred, xi, pre = np.eye(4), np.zeros(6), None
+        else:
+            T_pred, xi, pre = self._predict(t_mid, imu)
+        deskew_times = None if times is None or first else times - t_ref
+        num_points = self._preprocess(points, deskew_times, xi)
+        frame, T_mid = self._register(stamp_ns, T_pred, num_points, first)
+        frame.T_world_lidar = T_mid @ se3_exp(-t_ref * xi)
+        T_prev = self.frames[-1].T_world_lidar if self.frames else frame.T_world_lidar
+        frame.T_prev_curr = se3_inverse(T_prev) @ frame.T_world_lidar
+        self._update_velocity(t_mid, T_mid, pre, None if imu is None or len(imu) == 0 else imu)
+        self.mid_times.append(t_mid)
+        self.mid_poses.append(T_mid)
+        frame.ms = (time.perf_counter() - t_start) * 1e3
+        self.frames.append(frame)
+        return frame
+
+    def _preprocess(self, points: np.ndarray, times: np.ndarray | None, xi: np.ndarray) -> int:
+        """Range crop, deskew (when `times` are given), downsample and covariances into the
+        GICP's source pool; returns the point count. On the device (ScanGrid) unless the scan
+        has more voxels than `max_points`: then on the host, thinned evenly."""
+        from mcl3d.kernels.scan_grid import MAX_K
+
+        cfg = self.cfg
+        if cfg.k_neighbors <= MAX_K:
+            n = self.grid.downsample(points, cfg.voxel_size_m, self.gicp.src_pts, times,
+                                     None if times is None else xi, cfg.min_range_m,
+                                     cfg.max_range_m, self.gicp.src_cov, cfg.k_neighbors)
+            if n is not None:
+                self.gicp.use_device_source(n, plane_covs=True)
+                return n
+        r = np.linalg.norm(points, axis=1)
+        keep = np.isfinite(r) & (r >= cfg.min_range_m) & (r <= cfg.max_range_m)
+        points = points[keep]
+        if times is not None and len(points):
+            points = deskew(points, times[keep], xi)
+        down = voxel_downsample(points, cfg.voxel_size_m) if len(points) else points
+        if len(down) > cfg.max_points:
+            pick = np.linspace(0, len(down) - 1, cfg.max_points).astype(np.int64)
+            down = down[pick]
+        self.gicp.set_source(down, estimate_covariances(down, cfg.k_neighbors))
+        return len(down)
+
+    def _register(self, stamp_ns: int, T_pred: np.ndarray, num_points: int,
+                  first: bool) -> tuple[OdometryFrame, np.ndarray]:
+        """The frame (pose and relative motion filled in by `step`) and the mid-sweep pose;
+        the scan is in the GICP's source pool."""
+        cfg = self.cfg
+        lost = np.eye(6) * LOST_COVARIANCE
+        eye = np.eye(4)
+        if first or not self.keyframes:
+            frame = OdometryFrame(stamp_ns, eye, eye, np.zeros((6, 6)) if first else lost,
+                                  num_points, 0, 0, first, False, 0.0, False)
+            if num_points >= cfg.min_inliers:
+                self._insert_keyframe(T_pred)
+                frame.keyframe = True
+            else:
+                frame.warnings.append(f"scan has only {num_points} usable points: no keyframe")
+            return frame, T_pred
+        if num_points < cfg.min_inliers:
+            return OdometryFrame(stamp_ns, eye, eye, lost, num_points, 0, 0, False, False, 0.0,
+                                 True, [f"scan has only {num_points} usable points: pose "
+                                        "predicted, not measured"]), T_pred
+        rows, lefts = [], []
+        for slot, _, T_kf_world in self._nearest_keyframes(T_pred):
+            for level in range(cfg.map_levels):
+                rows.append(slot * cfg.map_levels + level)
+                lefts.append(T_kf_world)
+        self.gicp.set_problem(T_pred[None], row_group=np.zeros(len(rows)), row_map=rows,
+                              T_left=np.stack(lefts))
+        newest_first = self.keyframes[::-1]  # the likeliest hit first: fewer lookups
+        out = self.gicp.optimize(
+            cfg.max_iterations, rotation_eps_rad=np.radians(cfg.converged_rotation_deg),
+            translation_eps_m=cfg.converged_translation_m,
+            overlap_maps=[slot * cfg.map_levels + cfg.map_levels - 1 for slot, *_ in newest_first],
+            overlap_T_left=np.stack([T_kf_world for *_, T_kf_world in newest_first]),
+            validate_surfaces=cfg.validate_surfaces)
+        T, H, inliers = out.T[0], out.H[0], int(out.num_inliers[0])
+        overlap = float(out.overlap[0])
+        warnings = []
+        if inliers < cfg.min_inliers:
+            warnings.append(f"registration lost: {inliers} correspondences; pose predicted")
+            T, cov, degenerate = T_pred, lost, True
+        else:
+            warnings += degeneracy(H, cfg.degeneracy_ratio, cfg.rotation_degeneracy_ratio)
+            degenerate = bool(warnings)
+            cov = np.linalg.pinv(H) if degenerate else np.linalg.inv(H)
+        frame = OdometryFrame(stamp_ns, eye, eye, cov, num_points, inliers,
+                              int(out.iterations[0]), bool(out.converged[0]), False, overlap,
+                              degenerate, warnings)
+        if overlap < cfg.keyframe_overlap and inliers >= cfg.min_inliers:
+            self._insert_keyframe(T)
+            frame.keyframe = True
+        return frame, T
+
+    def _nearest_keyframes(self, T_world_lidar: np.ndarray) -> list[tuple]:
+        """The `registration_keyframes` keyframes closest to the predicted position."""
+        d = [np.linalg.norm(T[:3, 3] - T_world_lidar[:3, 3]) for _, T, _ in self.keyframes]
+        keep = np.argsort(d, kind="stable")[:self.cfg.registration_keyframes]
+        return [self.keyframes[i] for i in sorted(keep)]
+
+    def _insert_keyframe(self, T_world_lidar: np.ndarray) -> None:
+        """The scan in the GICP's source pool becomes a keyframe (maps built on the device)."""
+        cfg = self.cfg
+        g = self.gicp
+        if len(self.keyframes) == cfg.max_keyframes:
+            self.keyframes.pop(0)
+        slot = self.next_slot
+        self.next_slot = (self.next_slot + 1) % cfg.max_keyframes
+        if self.map_voxel_size_m is None:
+            self.map_voxel_size_m = cfg.map_voxel_size_m or adaptive_voxel_size(g.source()[0])
+        for level in range(cfg.map_levels):
+            map_id = slot * cfg.map_levels + level
+            self.maps.clear(map_id, self.map_voxel_size_m * 2**level)
+            self.maps.insert_rows(map_id, g.src_pts, g.src_cov, g.num_source, g.plane_covs)
+        self.keyframes.append((slot, T_world_lidar.copy(), se3_inverse(T_world_lidar)))
+
+    def _update_velocity(self, t_mid_s: float, T_mid: np.ndarray, pre: Preintegrated | None,
+                         imu_samples: np.ndarray | None) -> None:
+        """IMU velocity at this scan's mid-sweep time, consistent with the registered poses."""
+        if self.g_world is None or not self.mid_poses or imu_samples is None:
+            return
+        if pre is None:  # first interval with IMU: measure it for the velocity
+            pre = preintegrate(imu_samples[:, 0], imu_samples[:, 1:4], imu_samples[:, 4:7],
+                               self.mid_times[-1], t_mid_s)
+            self.velocity_known = True
+        T_i = self.mid_poses[-1] @ self.T_lidar_imu
+        T_j = T_mid @ self.T_lidar_imu
+        v_i = pre.velocity_at_start(T_i, T_j, self.g_world)
+        self.v_world_imu = v_i + self.g_world * pre.dt_s + T_i[:3, :3] @ pre.delta_v

@@ -1,0 +1,224 @@
+"""The Monte Carlo SLAM particle set on the device: current poses, per-particle keyframe
+poses, cumulative log weights, and the batched GICP that scores them against the shared
+keyframe voxel maps (kernels/slam.py does the arithmetic).
+
+Host side stays O(N) and small: log weights come back once per frame for pruning and the
+representative particle; keyframe poses only come back for one particle at a time.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mcl3d.core.errors import ConfigError
+from mcl3d.core.geometry import quat_to_rot, rot_to_quat, se3
+
+KEYFRAME_STEP = 8  # keyframe capacity grows in steps of this many
+DRIFT_SUMS = 5  # W, Σ w p (3), V: see SlamParticles.correct
+BYTES_PER_KEYFRAME_POSE = 24  # translation + quaternion vector part, f32
+
+
+def unpack_poses(rows: np.ndarray) -> np.ndarray:
+    """(K, 6) device rows (t, quaternion vector part) -> (K, 4, 4)."""
+    v = rows[:, 3:6].astype(np.float64)
+    w = np.sqrt(np.clip(1.0 - np.sum(v * v, axis=1), 0.0, None))
+    q = np.concatenate([v, w[:, None]], axis=1)
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    return se3(quat_to_rot(q), rows[:, :3].astype(np.float64))
+
+
+class SlamParticles:
+    """N particles x up to `max_keyframes` keyframes, scored by `gicp` (a BatchGicp over the
+    keyframe voxel maps, sized for 3 N groups)."""
+
+    def __init__(self, n: int, max_keyframes: int, gicp, seed: int):
+        import taichi as ti
+
+        from mcl3d.kernels.slam import NEIGHBOURS
+
+        if n < 1:
+            raise ConfigError(f"particles must be >= 1, got {n}")
+        self.n, self.max_keyframes, self.gicp, self.seed = n, max_keyframes, gicp, seed
+        self.q_cur = ti.Vector.field(4, ti.f32, n)
+        self.t_cur = ti.Vector.field(3, ti.f32, n)
+        self.log_w = ti.field(ti.f32, n)
+        self.frame_ll = ti.field(ti.f32, n)
+        self.nb = ti.field(ti.i32, (n, NEIGHBOURS))
+        self.nb_loop = ti.field(ti.i32, (n, NEIGHBOURS))
+        self.shift = ti.Vector.field(6, ti.f32, n)
+        self.corrected = ti.field(ti.i32, n)
+        self.fixed_travel = ti.field(ti.f32, n)  # travel (m) at the particle's last correction
+        self.fixed_drift = ti.Vector.field(DRIFT_SUMS, ti.f32, n)  # drift sums there
+        self.kf = ti.ndarray(ti.f32, (n, KEYFRAME_STEP, 6))
+        self.kf_travel = ti.ndarray(ti.f32, max_keyframes)
+        self.kf_drift = ti.ndarray(ti.f32, (max_keyframes, DRIFT_SUMS + 3))
+        self.num_keyframes = 0
+        self.q_cur.from_numpy(np.tile(np.array([0.0, 0.0, 0.0, 1.0], np.float32), (n, 1)))
+
+    # ---- memory ----
+
+    @property
+    def keyframe_capacity(self) -> int:
+        return self.kf.shape[1]
+
+    def state_bytes(self) -> int:
+        """Bytes of particle state: keyframe poses as allocated, current poses, weights."""
+        per_particle = 28 + 8 + 2 * 4 * 3 + 24 + 8 + 4 * DRIFT_SUMS  # pose, weights,
+        # neighbours, shift, flags, drift sums at the last settled correction
+        return self.n * (self.keyframe_capacity * BYTES_PER_KEYFRAME_POSE + per_particle)
+
+    def _reserve(self, num_keyframes: int) -> None:
+        import taichi as ti
+
+        from mcl3d.kernels import slam
+
+        if num_keyframes <= self.keyframe_capacity:
+            return
+        cap = -(-num_keyframes // KEYFRAME_STEP) * KEYFRAME_STEP
+        grown = ti.ndarray(ti.f32, (self.n, cap, 6))
+        slam.copy_keyframes(self.n, self.num_keyframes, self.kf, grown)
+        self.kf = grown
+
+    # ---- filter steps ----
+
+    def predict(self, T_prev_curr: np.ndarray, covariance: np.ndarray, step: int) -> None:
+        from mcl3d.kernels import slam
+
+        chol = np.linalg.cholesky(covariance + 1e-12 * np.eye(6)).astype(np.float32)
+        slam.predict(self.n, rot_to_quat(T_prev_curr[:3, :3]).astype(np.float32),
+                     T_prev_curr[:3, 3].astype(np.float32), chol, self.seed, step,
+                     self.q_cur, self.t_cur)
+
+    def shift_vertical(self, shift: np.ndarray, up: np.ndarray, sigma_m: float,
+                       step: int) -> None:
+        from mcl3d.kernels import slam
+
+        slam.shift_vertical(self.n, np.asarray(shift, np.float32), np.asarray(up, np.float32),
+                            sigma_m, self.seed, step, self.t_cur)
+
+    def add_keyframe(self, travel_m: float, drift: np.ndarray, odom_position: np.ndarray
+                     ) -> int:
+        """Every particle's current pose becomes the pose of a new keyframe; returns its id.
+        `drift` are the odometry's drift sums at this scan (see `correct`), `odom_position`
+        its position."""
+        from mcl3d.kernels import slam
+
+        k = self.num_keyframes
+        if k >= self.max_keyframes:
+            raise ConfigError(f"the run needs more than {self.max_keyframes} keyframes; raise "
+                              "slam.max_keyframes or slam.keyframe_overlap")
+        self._reserve(k + 1)
+        slam.insert_keyframe(self.n, k, self.q_cur, self.t_cur, self.kf)
+        self.kf_travel[k] = travel_m
+        for a, v in enumerate(np.r_[drift, odom_position]):
+            self.kf_drift[k, a] = float(v)
+        self.num_keyframes = k + 1
+        return k
+
+    def select_neighbours(self, travel_m: float, loop_min_travel_m: float,
+                          up: np.ndarray | None = None, max_dz_m: float = np.inf,
+                          max_facing_rad: float = np.pi) -> int:
+        """Neighbour keyframes of every particle (none more than `max_dz_m` along `up`);
+        returns how many particles see a loop (a keyframe facing more than `max_facing_rad`
+        away is a neighbour but not a loop)."""
+        from mcl3d.kernels import slam
+
+        up = np.array([0.0, 0.0, 1.0]) if up is None else up
+        return int(slam.select_neighbours(self.n, self.num_keyframes, self.kf, self.q_cur,
+                                          self.t_cur, self.kf_travel, travel_m,
+                                          loop_min_travel_m, float(np.cos(max_facing_rad)),
+                                          np.asarray(up, np.float32), min(max_dz_m, 3e38),
+                                          self.nb, self.nb_loop))
+
+    def _linearize(self, num_src: int, loop_only: bool) -> None:
+        """One GICP linearization of every (particle, neighbour) row at the current poses."""
+        from mcl3d.kernels import slam
+        from mcl3d.kernels.slam import NEIGHBOURS
+
+        g = self.gicp
+        slam.build_rows(self.n, self.kf, self.q_cur, self.t_cur, self.nb, self.nb_loop,
+                        int(loop_only), num_src, g.row_group, g.row_map, g.row_q, g.row_t,
+                        g.row_start, g.row_count, g.q_cand, g.t_cand)
+        groups = self.n * NEIGHBOURS
+        g.start(groups, groups, num_src, one_row_per_group=True)
+        g.iterate(use_lm=False, chunk=num_src)  # whole rows: no atomics, reproducible
+
+    def correct(self, travel_m: float, drift: np.ndarray, odom_position: np.ndarray,
+                num_src: int, min_inliers: int, max_rot_rad: float, max_trans_m: float,
+                settled_rad: float, settled_m: float) -> int:
+        """One gradient-guided update of the looping particles and their keyframes (eq. 5-10);
+        returns how many particles moved. `drift` are the odometry's drift sums now (W: the
+        prediction's cumulative rotational variance, Σ w_j p_j, V: the translational one),
+        by which the correction is spread over the keyframes."""
+        import taichi as ti
+
+        from mcl3d.kernels import slam
+
+        g = self.gicp
+        self._linearize(num_src, loop_only=True)
+        slam.correct(self.n, self.nb_loop, g.best_H, g.best_b, g.best_n, min_inliers,
+                     max_rot_rad, max_trans_m, self.q_cur, self.t_cur, self.shift,
+                     self.corrected)
+        d = ti.types.vector(DRIFT_SUMS, ti.f32)(*np.asarray(drift, np.float32))
+        slam.propagate(self.n, self.num_keyframes, self.kf, self.nb, self.kf_travel,
+                       self.kf_drift, d, ti.math.vec3(*np.asarray(odom_position, np.float32)),
+                       self.shift, self.corrected, self.fixed_travel, self.fixed_drift)
+        slam.mark_fixed(self.n, travel_m, d, self.corrected, self.shift, settled_rad, settled_m,
+                        self.fixed_travel, self.fixed_drift)
+        return int(self.corrected.to_numpy().sum())
+
+    def weigh(self, num_src: int, outlier_cost: float, points_weight: float) -> None:
+        """Frame log-likelihood of every particle, added to its cumulative log weight."""
+        from mcl3d.kernels import slam
+
+        g = self.gicp
+        self._linearize(num_src, loop_only=False)
+        slam.likelihood(self.n, num_src, self.nb, g.best_e, g.best_n, outlier_cost,
+                        points_weight, self.frame_ll, self.log_w)
+
+    def refine(self, covariance: np.ndarray, min_inliers: int, max_rot_rad: float,
+               max_trans_m: float) -> int:
+        """One Gauss-Newton step of every particle without a loop toward its own neighbour
+        keyframes, from the terms `weigh` linearized, with the prediction's `covariance` as
+        the prior; returns how many moved."""
+        from mcl3d.kernels import slam
+
+        g = self.gicp
+        info = np.linalg.inv(covariance + 1e-12 * np.eye(6)).astype(np.float32)
+        return int(slam.refine(self.n, self.nb, self.nb_loop, g.best_H, g.best_b, g.best_n,
+                               min_inliers, info, max_rot_rad, max_trans_m, self.q_cur,
+                               self.t_cur))
+
+    def respawn(self, dead: np.ndarray, source: np.ndarray, log_w: np.ndarray) -> None:
+        """Replace particles `dead` by copies of `source` and upload the new log weights."""
+        from mcl3d.kernels import slam
+
+        if len(dead):
+            slam.respawn(len(dead), np.ascontiguousarray(dead, np.int32),
+                         np.ascontiguousarray(source, np.int32), self.num_keyframes,
+                         self.q_cur, self.t_cur, self.fixed_travel, self.fixed_drift, self.kf)
+        self.log_w.from_numpy(np.ascontiguousarray(log_w, np.float32))
+
+    # ---- read back ----
+
+    def current_poses(self) -> np.ndarray:
+        q = self.q_cur.to_numpy().astype(np.float64)
+        return se3(quat_to_rot(q / np.linalg.norm(q, axis=1, keepdims=True)),
+                   self.t_cur.to_numpy().astype(np.float64))
+
+    def quaternion(self, i: int) -> np.ndarray:
+        q = np.array([self.q_cur[i][a] for a in range(4)], np.float64)
+        return q / np.linalg.norm(q)
+
+    def positions(self) -> np.ndarray:
+        return self.t_cur.to_numpy().astype(np.float64)
+
+    def keyframe_poses(self, i: int) -> np.ndarray:
+        """(K, 4, 4) keyframe poses of particle i."""
+        from mcl3d.kernels import slam
+
+        K = self.num_keyframes
+        out = np.zeros((max(K, 1), 6), np.float32)
+        if K:
+            slam.gather_keyframes(i, K, self.kf, out)
+        return unpack_poses(out[:K])

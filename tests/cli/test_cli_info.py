@@ -1,0 +1,208 @@
+"""`mcl3d info` end to end (subprocess, as a user runs it) and bad input as a new user tries it.
+
+Real data: ouster_os1_64_mcap (MIT licence).
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from mcl3d.core.errors import LogFormatError, PointCloudError, TopicError
+from mcl3d.io.logs import ros_types as rt
+from mcl3d.io.logs.messages import Imu, PointCloud, PoseStamped
+from mcl3d.io.logs.reader import LogReader
+from mcl3d.io.logs.writer import LogWriter
+
+T0 = 1_700_000_000_000_000_000
+
+
+def mcl3d(*args: str, cwd=None) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "mcl3d", *map(str, args)], capture_output=True,
+                          text=True, cwd=cwd, env={"COLUMNS": "200", "PATH": ""}, timeout=120)
+
+
+def assert_one_line_error(result: subprocess.CompletedProcess, *words: str) -> None:
+    assert result.returncode == 1, result.stderr
+    assert "Traceback" not in result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error:"), result.stderr
+    for word in words:
+        assert word in lines[0], lines[0]
+
+
+def cloud(stamp: int, n: int = 20) -> PointCloud:
+    points = np.arange(3 * n, dtype=np.float32).reshape(n, 3) + 1
+    return PointCloud(stamp, "lidar", points, np.linspace(0, 0.1, n, dtype=np.float32),
+                      {"ring": np.arange(n, dtype=np.uint16)})
+
+
+def imu(stamp: int) -> Imu:
+    return Imu(stamp, "imu", np.zeros(3), np.array([0.0, 0.0, 9.81]))
+
+
+@pytest.fixture
+def small_log(tmp_path):
+    path = tmp_path / "small.mcap"
+    with LogWriter(path) as w:
+        for k in range(5):
+            stamp = T0 + k * 100_000_000
+            w.write_points("/lidar/points", cloud(stamp))
+            w.write_imu("/imu/data", imu(stamp))
+            w.write_pose("/ground_truth", PoseStamped(stamp, "map", np.eye(4)))
+    return path
+
+
+def test_info_on_the_real_ouster_mcap(shared_data):
+    result = mcl3d("info", shared_data / "ouster_os1_64_mcap" / "test.mcap")
+    assert result.returncode == 0, result.stderr
+    out = result.stdout
+    assert "MCAP (ros1)" in out and "0.183 s" in out
+    assert "2020-06-22T13:40:42.605Z" in out
+    row = next(line for line in out.splitlines() if "/os1_cloud_node/points " in line)
+    assert "sensor_msgs/PointCloud2" in row and " 2 " in row and "os1_lidar" in row
+    row = next(line for line in out.splitlines() if "/os1_cloud_node/imu " in line)
+    assert "sensor_msgs/Imu" in row and " 17 " in row and "os1_imu" in row
+    assert "organized 64 x 2048" in out
+    assert "t:uint32" in out and "ring:uint8" in out and "range:uint32" in out
+    assert "min 45716, mean 45762, max 45809" in out
+    assert "first 2 scans decoded" in out
+
+
+def test_info_on_a_written_log(small_log):
+    result = mcl3d("info", small_log)
+    assert result.returncode == 0, result.stderr
+    out = result.stdout
+    assert "MCAP (ros2)" in out and "mcl3d" in out and "0.400 s" in out
+    row = next(line for line in out.splitlines() if "/lidar/points " in line)
+    assert " 5 " in row and "10.0" in row and "lidar" in row
+    assert "unorganized, 20 points" in out and "first 3 scans decoded" in out
+    assert "field 't'" in out
+    gt = next(line for line in out.splitlines() if line.strip("│ ").startswith("gt "))
+    assert "/ground_truth" in gt
+
+
+def test_info_on_a_ros2_bag_folder(tmp_path):
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    store = rt.ros2_typestore()
+    with Writer(tmp_path / "bag", version=8, storage_plugin=StoragePlugin.SQLITE3) as w:
+        c = w.add_connection("/points", rt.POINTCLOUD2, typestore=store)
+        for k in range(3):
+            msg = rt.from_pointcloud(store, cloud(T0 + k * 10**8), "test")
+            w.write(c, T0 + k * 10**8, store.serialize_cdr(msg, rt.POINTCLOUD2))
+    result = mcl3d("info", tmp_path / "bag")
+    assert result.returncode == 0, result.stderr
+    assert "ROS 2 bag folder (sqlite3)" in result.stdout
+    assert "unorganized, 20 points" in result.stdout
+
+
+def test_truncated_mcap(small_log, tmp_path):
+    data = small_log.read_bytes()
+    for cut in (len(data) // 2, len(data) - 3, 40):
+        bad = tmp_path / "cut.mcap"
+        bad.write_bytes(data[:cut])
+        before = sorted(tmp_path.iterdir())
+        assert_one_line_error(mcl3d("info", bad), "cut.mcap", "truncated")
+        assert sorted(tmp_path.iterdir()) == before
+        with pytest.raises(LogFormatError, match="truncated"):
+            LogReader(bad)
+
+
+def test_corrupt_mcap_body(small_log, tmp_path):
+    data = bytearray(small_log.read_bytes())
+    data[200:len(data) - 400] = bytes(len(data) - 600)
+    bad = tmp_path / "zeroed.mcap"
+    bad.write_bytes(bytes(data))
+    assert_one_line_error(mcl3d("info", bad), "zeroed.mcap", "corrupt")
+
+
+def test_text_file_renamed_mcap(tmp_path):
+    bad = tmp_path / "notes.mcap"
+    bad.write_text("these are my notes, not a log\n")
+    assert_one_line_error(mcl3d("info", bad), "notes.mcap", "not an MCAP file")
+    assert_one_line_error(mcl3d("info", tmp_path / "missing.mcap"), "missing.mcap", "no such")
+    bag = tmp_path / "notes.bag"
+    bag.write_text("hello\n")
+    assert_one_line_error(mcl3d("info", bag), "notes.bag", "not a ROS 1 bag")
+
+
+def test_log_without_pointcloud2(tmp_path):
+    path = tmp_path / "imu_only.mcap"
+    with LogWriter(path) as w:
+        w.write_imu("/imu/data", imu(T0))
+    with LogReader(path) as r, pytest.raises(TopicError, match="no point cloud"):
+        next(r.scans())
+    result = mcl3d("info", path)  # describing such a log is fine; it says no cloud topic is used
+    assert result.returncode == 0 and "points │ -" in result.stdout
+    assert_one_line_error(mcl3d("info", path, "--points-topic", "/imu/data"), "/imu/data",
+                          "holds sensor_msgs/Imu", "not sensor_msgs/PointCloud2")
+    assert_one_line_error(mcl3d("info", path, "--points-topic", "/points"), "/points",
+                          "not in the log")
+    out = tmp_path / "odometry"  # a command that needs clouds stops, and writes nothing
+    assert_one_line_error(mcl3d("odometry", path, "-o", out, "--backend", "cpu"),
+                          "no point cloud", "--points-topic")
+    assert list(tmp_path.iterdir()) == [path]
+
+
+def test_two_pointcloud2_topics_need_points_topic(tmp_path):
+    path = tmp_path / "two.mcap"
+    with LogWriter(path) as w:
+        w.write_points("/front/points", cloud(T0))
+        w.write_points("/rear/points", cloud(T0 + 1))
+    with LogReader(path) as r:
+        with pytest.raises(TopicError, match=r"/front/points, /rear/points.*--points-topic"):
+            next(r.scans())
+        with pytest.raises(TopicError, match="--points-topic"):
+            r.count("points")
+    with LogReader(path, points_topic="/rear/points") as r:
+        assert [s.stamp_ns for s in r.scans()] == [T0 + 1]
+    result = mcl3d("info", path)
+    assert result.returncode == 0
+    assert "choose one with --points-topic" in result.stdout
+    out = tmp_path / "odometry"
+    assert_one_line_error(mcl3d("odometry", path, "-o", out, "--backend", "cpu"),
+                          "/front/points, /rear/points", "--points-topic")
+    assert list(tmp_path.iterdir()) == [path]
+
+
+def test_cloud_without_xyz(tmp_path):
+    from mcap.writer import Writer
+
+    store = rt.ros2_typestore()
+    T = store.types
+    msg = T[rt.POINTCLOUD2](
+        header=T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=1, nanosec=0),
+                                        frame_id="radar"),
+        height=1, width=2, fields=[T["sensor_msgs/msg/PointField"](name="intensity", offset=0,
+                                                                    datatype=7, count=1)],
+        is_bigendian=False, point_step=4, row_step=8, data=np.zeros(8, np.uint8), is_dense=True)
+    path = tmp_path / "noxyz.mcap"
+    with open(path, "wb") as f:
+        writer = Writer(f)
+        writer.start(profile="ros2", library="test")
+        text, _ = store.generate_msgdef(rt.POINTCLOUD2, ros_version=2)
+        schema = writer.register_schema(rt.POINTCLOUD2, "ros2msg", text.encode())
+        channel = writer.register_channel("/radar/points", "cdr", schema)
+        writer.add_message(channel, 10**9, bytes(store.serialize_cdr(msg, rt.POINTCLOUD2)), 10**9)
+        writer.finish()
+    before = sorted(tmp_path.iterdir())
+    assert_one_line_error(mcl3d("info", path), "/radar/points", "no x/y/z field")
+    assert sorted(tmp_path.iterdir()) == before
+    with LogReader(path) as r, pytest.raises(PointCloudError, match="no x/y/z"):
+        next(r.scans())
+
+
+def test_ground_truth_missing_is_a_topic_error(tmp_path):
+    path = tmp_path / "nogt.mcap"
+    with LogWriter(path) as w:
+        w.write_points("/lidar/points", cloud(T0))
+        w.write_pose("/pose", PoseStamped(T0, "map", np.eye(4)))
+    with LogReader(path) as r, pytest.raises(TopicError, match="--gt-topic"):
+        r.ground_truth()
+    with LogReader(path, gt_topic="/pose") as r:
+        stamps, poses = r.ground_truth()
+    assert stamps.tolist() == [T0] and poses.shape == (1, 4, 4)

@@ -1,0 +1,212 @@
+"""Monte Carlo SLAM end to end: a loop closure with real GICP on a synthetic room, and the
+`mcl3d slam` command on a short simulated forest log (outputs, no-IMU, Ctrl-C, bad input)."""
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from mcl3d.cli import app
+from mcl3d.core import geometry
+
+
+def room_cloud(rng) -> np.ndarray:
+    """Walls, floor, ceiling and a few pillars of a 12 x 9 x 3 m room, in its own frame."""
+    n = 6000
+    faces = []
+    for axis, value in ((0, -6.0), (0, 6.0), (1, -4.5), (1, 4.5), (2, 0.0), (2, 3.0)):
+        p = rng.uniform([-6, -4.5, 0], [6, 4.5, 3], (n // 6, 3))
+        p[:, axis] = value
+        faces.append(p)
+    for cx, cy in ((-2.0, 1.0), (3.0, -2.0), (1.0, 2.5)):
+        a = rng.uniform(0, 2 * np.pi, 400)
+        faces.append(np.c_[cx + 0.3 * np.cos(a), cy + 0.3 * np.sin(a), rng.uniform(0, 3, 400)])
+    return np.concatenate(faces)
+
+
+def test_loop_closure_pulls_the_current_pose_and_bends_the_keyframes(ti_runtime):
+    from mcl3d.registration.batch_gicp import BatchGicp
+    from mcl3d.registration.gaussian_voxels import GaussianVoxelMaps
+    from mcl3d.registration.preprocess import estimate_covariances, voxel_downsample
+    from mcl3d.slam.particles import SlamParticles
+
+    rng = np.random.default_rng(0)
+    world = voxel_downsample(room_cloud(rng), 0.2)
+    # a square path around the room; keyframes every 4 m of travel, drift growing with it
+    xy = [(-3, -2), (1, -2), (3, 0), (1, 2), (-3, 2), (-4, 0)]
+    true_kf = np.stack([geometry.se3(geometry.rpy_to_rot(0, 0, 0.4 * k), [x, y, 1.2])
+                        for k, (x, y) in enumerate(xy)])
+    travel = np.array([0.0, 4.0, 8.0, 12.0, 16.0, 20.0])
+    drift = [geometry.se3(geometry.rpy_to_rot(0, 0, np.deg2rad(1.5) * s / 24),
+                          [0.3 * s / 24, -0.2 * s / 24, 0.0]) for s in travel]
+    est_kf = np.stack([D @ T for D, T in zip(drift, true_kf, strict=True)])
+    true_cur = geometry.se3(geometry.rpy_to_rot(0, 0, 0.05), [-2.8, -1.9, 1.2])
+    D_now = geometry.se3(geometry.rpy_to_rot(0, 0, np.deg2rad(1.5)), [0.3, -0.2, 0.0])
+    est_cur = D_now @ true_cur
+
+    maps = GaussianVoxelMaps(max_maps=8, buckets_per_map=4096, max_points=4096)
+    for k, T in enumerate(true_kf):
+        local = geometry.transform_points(geometry.se3_inverse(T), world)
+        maps.clear(k, 0.5)
+        maps.insert(k, local, estimate_covariances(local, 10))
+    src = geometry.transform_points(geometry.se3_inverse(true_cur), world)
+    src = src[np.linspace(0, len(src) - 1, 512).astype(int)]
+    gicp = BatchGicp(maps, max_groups=3, max_rows=3, max_source_points=512)
+    gicp.set_source(src, estimate_covariances(src, 10))
+    # the odometry's drift sums (W, Σ w p, V), variance growing evenly with travel
+    path = np.r_[travel, 24.0]
+    pos = np.r_[est_kf[:, :3, 3], est_cur[None, :3, 3]]
+    w = np.diff(path, prepend=0.0) * 1e-5
+    drift = np.c_[np.cumsum(w), np.cumsum(w[:, None] * pos, axis=0), 10 * np.cumsum(w)]
+    p = SlamParticles(1, 8, gicp, seed=0)
+    for k in range(len(true_kf)):
+        p.q_cur.from_numpy(geometry.rot_to_quat(est_kf[k:k + 1, :3, :3]).astype(np.float32))
+        p.t_cur.from_numpy(est_kf[k:k + 1, :3, 3].astype(np.float32))
+        p.add_keyframe(float(travel[k]), drift[k], est_kf[k, :3, 3])
+    p.q_cur.from_numpy(geometry.rot_to_quat(est_cur[None, :3, :3]).astype(np.float32))
+    p.t_cur.from_numpy(est_cur[None, :3, 3].astype(np.float32))
+
+    assert p.select_neighbours(24.0, 10.0) == 1
+    nb = p.nb.to_numpy()[0]
+    assert 0 in nb
+    for _ in range(4):
+        p.correct(24.0, drift[-1], est_cur[:3, 3], len(src), 30, np.deg2rad(5.0), 1.0,
+                  np.deg2rad(0.2), 0.02)
+        p.select_neighbours(24.0, 10.0)
+    cur = p.current_poses()[0]
+    before = np.linalg.norm(est_cur[:3, 3] - true_cur[:3, 3])
+    after = np.linalg.norm(cur[:3, 3] - true_cur[:3, 3])
+    assert before > 0.3 and after < 0.03
+    assert geometry.rotation_angle(cur[:3, :3].T @ true_cur[:3, :3]) < np.deg2rad(0.2)
+    kf = p.keyframe_poses(0)
+    np.testing.assert_allclose(kf[0], est_kf[0], atol=1e-5)  # the loop's anchor stays
+    err_before = np.linalg.norm(est_kf[:, :3, 3] - true_kf[:, :3, 3], axis=1)
+    err_after = np.linalg.norm(kf[:, :3, 3] - true_kf[:, :3, 3], axis=1)
+    assert (err_after[3:] < 0.5 * err_before[3:]).all()  # late keyframes follow the loop
+
+
+@pytest.fixture(scope="module")
+def forest_log(tmp_path_factory):
+    from mcl3d.sim.pipeline import SimulateRequest, run
+
+    log = tmp_path_factory.mktemp("slam") / "forest.mcap"
+    run(SimulateRequest(world="forest", sensor="mid360", trajectory="ground", duration_s=5.0,
+                        seed=2, output=log,
+                        overrides={"world.forest_rows": 6, "world.forest_trees_per_row": 6}))
+    return log
+
+
+def test_slam_command_writes_every_output(forest_log, tmp_path, ti_runtime):
+    import json
+
+    from mcl3d.io.trajectory import read_kitti, read_tum
+    from mcl3d.maps.io import read_blocks
+
+    out = tmp_path / "out"
+    tsdf = tmp_path / "map.tsdf"
+    result = CliRunner().invoke(app, ["slam", str(forest_log), "-o", str(out), "--particles",
+                                      "200", "--tsdf", str(tsdf), "--seed", "3"])
+    assert result.exit_code == 0, result.output
+    assert "ATE SLAM" in result.output
+    traj = read_tum(out / "slam.tum")
+    assert len(traj) == 50 == len(read_kitti(out / "slam_kitti.txt"))
+    assert len(read_tum(out / "slam_online.tum")) == len(read_tum(out / "odometry.tum")) == 50
+    summary = json.loads((out / "slam_summary.json").read_text())
+    assert summary["keyframes"] >= 1 and summary["particles"] == 200
+    assert summary["evaluation"]["slam"]["ate_m"] < 0.1
+    lines = (out / "frames.csv").read_text().splitlines()
+    assert len(lines) == 51 and lines[0].startswith("stamp_s,x,y,z")
+    head = (out / "map.ply").read_bytes()[:200]
+    count = int(head.split(b"element vertex ")[1].split(b"\n")[0])
+    assert count > 1000
+    assert (out / "map.ply").stat().st_size == head.index(b"end_header\n") + 11 + 12 * count
+    header, _, data = read_blocks(tsdf)
+    assert header["format"] and len(data.sdf) > 0
+
+
+def test_slam_without_imu_and_interrupted_keeps_results(forest_log, tmp_path, ti_runtime,
+                                                        monkeypatch):
+    from mcl3d.core.errors import RunInterrupted
+    from mcl3d.io.trajectory import read_tum
+    from mcl3d.slam.monte_carlo_slam import MonteCarloSlam
+
+    out = tmp_path / "noimu"
+    result = CliRunner().invoke(app, ["slam", str(forest_log), "-o", str(out), "--particles",
+                                      "100", "--no-imu", "--max-scans", "20"])
+    assert result.exit_code == 0, result.output
+    assert "constant velocity" in result.output
+    assert len(read_tum(out / "slam.tum")) == 20
+    again = tmp_path / "noimu_again"
+    result = CliRunner().invoke(app, ["slam", str(forest_log), "-o", str(again), "--particles",
+                                      "100", "--no-imu", "--max-scans", "20"])
+    assert result.exit_code == 0, result.output
+    for name in ("slam.tum", "slam_online.tum", "odometry.tum", "map.ply"):  # reproducible
+        assert (out / name).read_bytes() == (again / name).read_bytes(), name
+
+    step = MonteCarloSlam.step
+
+    def interrupted(self, *args, **kwargs):
+        if len(self.frames) == 12:
+            raise KeyboardInterrupt
+        return step(self, *args, **kwargs)
+
+    monkeypatch.setattr(MonteCarloSlam, "step", interrupted)
+    out2 = tmp_path / "interrupted"
+    result = CliRunner().invoke(app, ["slam", str(forest_log), "-o", str(out2), "--particles",
+                                      "100", "--max-scans", "30"])
+    assert isinstance(result.exception, RunInterrupted)  # the app exits 130 on it
+    assert "after 12 scans" in str(result.exception)
+    assert len(read_tum(out2 / "slam.tum")) == 12
+    assert (out2 / "map.ply").exists() and (out2 / "slam_summary.json").exists()
+
+
+def test_slam_bad_input_is_one_error(tmp_path, forest_log, ti_runtime):
+    """Each is an Mcl3dError (the app prints it as one line and exits 1), nothing written."""
+    from mcl3d.core.errors import Mcl3dError
+
+    runner = CliRunner()
+    cases = [([str(tmp_path / "nope.mcap")], "nope.mcap"),
+             ([str(forest_log), "--points-topic", "/nothing"], "/nothing"),
+             ([str(forest_log), "--particles", "0"], "particles")]
+    for k, (args, needle) in enumerate(cases):
+        out = tmp_path / f"o{k}"
+        result = runner.invoke(app, ["slam", *args, "-o", str(out)])
+        assert isinstance(result.exception, Mcl3dError), result.output
+        assert needle in str(result.exception)
+        assert not out.exists()
+
+
+def test_slam_survives_a_gap_and_a_stationary_start(forest_log, ti_runtime):
+    """The scans in 1.0-2.0 s are missing (their IMU samples still arrive), and the first 5
+    scans repeat the first one (the robot stands still): the trajectory stays on track."""
+    from mcl3d.io.logs.reader import LogReader
+    from mcl3d.io.trajectory import read_tum
+    from mcl3d.odometry.pipeline import _scans_with_imu
+    from mcl3d.slam.monte_carlo_slam import MonteCarloSlam, SlamConfig
+
+    gt = read_tum(forest_log.with_name(forest_log.stem + "_gt.tum"))
+    slam = MonteCarloSlam(SlamConfig(particles=100, seed=1))
+    stamps = []
+    with LogReader(forest_log) as reader:
+        first = None
+        imu_gap = []
+        for cloud, (imu, frame) in _scans_with_imu(reader, ["points", "imu"], [], [], []):
+            if first is None:
+                first = cloud
+                slam.odometry.T_lidar_imu = reader.static_transform(cloud.frame_id, frame)
+                for k in range(5):  # standing still before driving off
+                    slam.step(cloud.points, cloud.times_s, cloud.stamp_ns - (5 - k) * 100_000_000,
+                              None)
+            t = cloud.stamp_ns * 1e-9 - gt.stamps_s[0]
+            if 1.0 <= t < 2.0:
+                imu_gap.append(imu)
+                continue
+            rows = np.concatenate([*imu_gap, imu]) if imu_gap else imu
+            imu_gap = []
+            slam.step(cloud.points, cloud.times_s, cloud.stamp_ns, rows)
+            stamps.append(cloud.stamp_ns * 1e-9)
+    _, poses = slam.trajectory()
+    poses = poses[5:]
+    ref = gt.interpolate_poses(stamps)
+    aligned = ref[0] @ geometry.se3_inverse(poses[0]) @ poses
+    err = np.linalg.norm(aligned[:, :3, 3] - ref[:, :3, 3], axis=1)
+    assert len(stamps) == 40 and err.max() < 0.25
