@@ -28,11 +28,17 @@ class _App(typer.Typer):
         try:
             return super().__call__(*args, **kwargs)
         except RunInterrupted as exc:
-            _error(str(exc))
+            _error(_with_flag(exc))
             sys.exit(130)
         except Mcl3dError as exc:
-            _error(str(exc))
+            _error(_with_flag(exc))
             sys.exit(1)
+
+
+def _with_flag(exc: Mcl3dError) -> str:
+    from mcl3d.console import with_flag
+
+    return with_flag(str(exc), exc.setting)
 
 
 def _error(message: str) -> None:
@@ -159,7 +165,7 @@ def eval_trajectory(
     """Accuracy of a trajectory against a reference: ATE and RPE, with evo's numbers."""
     import json
 
-    from mcl3d.console import console
+    from mcl3d.console import console, evaluation_tables
     from mcl3d.core.outputs import check_writable, write_text_atomic
     from mcl3d.evaluation.metrics import evaluate, read_pair
     from mcl3d.evaluation.plots import plot_evaluation, plot_format
@@ -179,37 +185,8 @@ def eval_trajectory(
     if json_path is not None:
         numbers = {"reference": str(ref), "estimate": str(est), **result.as_dict()}
         write_text_atomic(json_path, json.dumps(numbers, indent=2) + "\n")
-    for table in _eval_tables(result, ref, est, plot, json_path):
+    for table in evaluation_tables(result, ref, est, plot, json_path):
         console.print(table)
-
-
-def _eval_tables(result, ref: Path, est: Path, plot: Path | None, json_path: Path | None):
-    """The run summary and the error statistics of `mcl3d eval` as Rich tables."""
-    from rich.table import Table
-
-    from mcl3d.console import summary_table
-
-    how = result.alignment
-    aligned = {"none": "none", "origin": "origin (first poses coincide)",
-               "se3": "se3 (Umeyama)", "sim3": f"sim3 (Umeyama), scale {how.scale:.6f}"}
-    rows = [("reference", f"{ref} ({result.num_ref} poses)"),
-            ("estimate", f"{est} ({result.num_est} poses)"),
-            ("associated", f"{len(result.association)} poses within "
-                           f"{result.association.max_diff_s:g} s"),
-            ("alignment", aligned[how.method]),
-            ("RPE pairs", f"{result.rpe.pairs.shape[0]} at {result.rpe.delta:g} {result.rpe.unit}"
-                          f"{' (all pairs)' if result.rpe.all_pairs else ''}")]
-    rows += [(name, str(path)) for name, path in (("plot", plot), ("json", json_path)) if path]
-    stats = Table(title="Trajectory error", title_justify="left")
-    for column in ("metric", "unit", "rmse", "mean", "median", "std", "min", "max"):
-        stats.add_column(column, justify="left" if column in ("metric", "unit") else "right")
-    for name, unit, s in (("ATE translation", "m", result.ate.translation_m),
-                          ("ATE rotation", "deg", result.ate.rotation_deg),
-                          ("RPE translation", "m", result.rpe.translation_m),
-                          ("RPE rotation", "deg", result.rpe.rotation_deg)):
-        stats.add_row(name, unit, *(f"{v:.4f}" for v in
-                                    (s.rmse, s.mean, s.median, s.std, s.min, s.max)))
-    return summary_table("Evaluation", rows), stats
 
 
 # Topic overrides shared by every command that reads a log (CONVENTIONS §3).
@@ -236,12 +213,12 @@ def info(
                                        "point statistics.")] = 3,
 ) -> None:
     """Describe a log like `ros2 bag info`: topics, types, counts, rates, frames, cloud layout."""
-    from mcl3d.console import console
-    from mcl3d.io.logs.info import log_info, render
+    from mcl3d.console import console, log_info_tables
+    from mcl3d.io.logs.info import log_info
 
     result = log_info(log, max_scans=scans, points_topic=points_topic, imu_topic=imu_topic,
                       odom_topic=odom_topic, gt_topic=gt_topic)
-    for table in render(result):
+    for table in log_info_tables(result):
         console.print(table)
 
 
@@ -274,13 +251,14 @@ def simulate(
     force: Annotated[bool, typer.Option("--force", help="Overwrite existing outputs.")] = False,
 ) -> None:
     """Simulate a LiDAR, IMU, odometry and ground truth in a world, as a ROS 2 MCAP log."""
-    from mcl3d.console import console, summary_table
+    from mcl3d.console import ProgressBars, console, summary_table
     from mcl3d.sim.pipeline import SimulateRequest, run, summary_rows
 
-    result = run(SimulateRequest(world=world, sensor=sensor, trajectory=trajectory,
-                                 duration_s=duration, seed=seed, output=output,
-                                 config_path=config, export_mesh=export_mesh,
-                                 export_map=export_map, force=force))
+    with ProgressBars() as bars:
+        result = run(SimulateRequest(world=world, sensor=sensor, trajectory=trajectory,
+                                     duration_s=duration, seed=seed, output=output,
+                                     config_path=config, export_mesh=export_mesh,
+                                     export_map=export_map, force=force), bars.on_progress)
     console.print(summary_table("Simulation", summary_rows(result)))
 
 
@@ -328,19 +306,21 @@ def build_map(
     backend: BackendOption = None,
 ) -> None:
     """Build a TSDF map from a log with poses, a point-cloud map, a mesh or a HATSDF map."""
-    from mcl3d.console import console, summary_table
+    from mcl3d.console import ProgressBars, console, summary_table
     from mcl3d.core import config as cfg
-    from mcl3d.mapping.pipeline import BuildMapPipeline, summary_rows
+    from mcl3d.mapping.pipeline import BuildMapRequest, run, summary_rows
     from mcl3d.maps.build import BuildConfig
 
     settings = cfg.load(BuildConfig, config, {
         "voxel_size_m": voxel_size, "truncation_m": truncation, "normals": normals,
         "max_range_m": max_range, "max_capacity_blocks": capacity_blocks})
     info = _init_backend(backend)
-    result = BuildMapPipeline(source, output, settings, trajectory=trajectory, f16=f16,
+    request = BuildMapRequest(source, output, settings, trajectory=trajectory, f16=f16,
                               force=force, export_mesh=export_mesh,
                               export_points=export_points, points_topic=points_topic,
-                              gt_topic=gt_topic).run()
+                              gt_topic=gt_topic)
+    with ProgressBars() as bars:
+        result = run(request, bars.on_progress)
     console.print(summary_table("Map built", summary_rows(result, info.backend)))
 
 
@@ -356,28 +336,30 @@ def map_info(
     force: Annotated[bool, typer.Option("--force", help="Overwrite existing outputs.")] = False,
 ) -> None:
     """Print a map's header and statistics; optionally export it for viewers."""
+    import dataclasses
     import json
+
+    import numpy as np
 
     from mcl3d.console import console, summary_table
     from mcl3d.core.outputs import check_writable
     from mcl3d.mapping.pipeline import map_rows
     from mcl3d.maps import export
     from mcl3d.maps.io import read_blocks
-    from mcl3d.maps.tsdf import block_stats
+    from mcl3d.maps.tsdf import block_stats, loaded_bytes_per_block
 
     for path in (export_mesh, export_points):
         if path:
             check_writable(path, force)
     header, geometry, data = read_blocks(map_file)
-    per_voxel = data.sdf.dtype.itemsize + data.weight.dtype.itemsize
-    stats = block_stats(geometry, data, 512 * per_voxel + 16)
-    stats["file_bytes"] = map_file.stat().st_size
+    stats = block_stats(geometry, data, loaded_bytes_per_block(data.sdf.dtype == np.float16))
+    stats = dataclasses.replace(stats, file_bytes=map_file.stat().st_size)
     rows = [("file", str(map_file)),
             ("format", f"{header['format']} v{header['format_version']} (mcl3d "
                        f"{header.get('mcl3d_version', '?')}, {header.get('created_utc', '?')})"),
             ("frame", header["frame_id"]),
             ("precision", header["distance_dtype"]),
-            *map_rows(header, stats),
+            *map_rows(geometry, stats),
             ("built from", json.dumps(header.get("source", {}))),
             ("build time", f"{header.get('build', {}).get('seconds', '?')} s")]
     if export_mesh:
@@ -402,7 +384,7 @@ def _localize_overrides(init: str, init_std: str | None, particles: int | None,
         o["localizer.init.mode"] = init
     else:
         o["localizer.init.mode"] = "pose"
-        o["localizer.init.pose"] = parse_floats(init, 6, "--init (x y z roll pitch yaw)")
+        o["localizer.init.pose"] = parse_floats(init, 6, "--init (x y z [m] roll pitch yaw [deg])")
     if init_std is not None:
         o["localizer.init.std"] = parse_floats(init_std, 6, "--init-std")
     if height_band is not None:
@@ -426,9 +408,9 @@ def localize(
     out: Annotated[Path, typer.Option("-o", "--out", help="Output folder.")],
     init: Annotated[str, typer.Option(
         help='"global" (uniform over free space), "gt" (first ground-truth pose) or '
-             '"x y z roll pitch yaw" (m, rad).')] = "global",
+             '"x y z roll pitch yaw" (m, deg).')] = "global",
     init_std: Annotated[str | None, typer.Option(
-        help='Std around --init pose: "sx sy sz sroll spitch syaw" (m, rad).')] = None,
+        help='Std around --init pose: "sx sy sz sroll spitch syaw" (m, deg).')] = None,
     particles: Annotated[int | None, typer.Option(
         help="Particles N (default 100000).")] = None,
     min_particles: Annotated[int | None, typer.Option(
@@ -457,32 +439,26 @@ def localize(
     backend: BackendOption = None,
 ) -> None:
     """6-DoF Monte Carlo localization of a log in a TSDF map (global or tracking)."""
-    from mcl3d.console import console, make_progress, summary_table
+    from mcl3d.console import ProgressBars, console, summary_table
     from mcl3d.core import config as config_mod
-    from mcl3d.localization.pipeline import LocalizeConfig, Topics, run, summary_rows
+    from mcl3d.localization.motion_source import KINDS
+    from mcl3d.localization.pipeline import LocalizeConfig, LocalizeRequest, Topics, run
+    from mcl3d.localization.summary import summary_rows
 
-    if motion is not None and motion not in ("auto", "odom", "imu", "constant_velocity"):
+    if motion is not None and motion not in KINDS:
         raise typer.BadParameter("--motion must be auto, odom, imu or constant_velocity")
     overrides = _localize_overrides(init, init_std, particles, min_particles, max_particles,
                                     points, seed, height_band, motion, max_scans)
     cfg = config_mod.load(LocalizeConfig, config, overrides)
     info = _init_backend(backend)
-    with make_progress() as progress:
-        task = progress.add_task("localize", total=None, status="", rate="")
-
-        def on_progress(result, done: int, total: int) -> None:
-            ms = sum(result.timings_ms.values())
-            progress.update(task, completed=done, total=total,
-                            status=f"{result.state:<12} match {result.match_ratio:.2f}",
-                            rate=f"{ms:.0f} ms/update")
-
-        result = run(log, map_file, out, cfg, topics=Topics(points_topic, imu_topic, odom_topic,
-                                                             gt_topic),
-                     force=force, result_mcap=result_mcap, backend=info.requested,
-                     on_progress=on_progress)
+    request = LocalizeRequest(log=log, map=map_file, output_dir=out, config=cfg,
+                              topics=Topics(points_topic, imu_topic, odom_topic, gt_topic),
+                              force=force, result_mcap=result_mcap, backend=info.requested)
+    with ProgressBars() as bars:
+        result = run(request, on_progress=bars.on_progress)
     s = result.summary
     console.print(summary_table("Localization", summary_rows(s, out)))
-    for w in s["warnings"][:5]:
+    for w in s.warnings[:5]:
         console.print(f"[yellow]warning:[/] {w}")
 
 
@@ -540,41 +516,37 @@ def odometry(
     backend: BackendOption = None,
 ) -> None:
     """LiDAR(-inertial) odometry: scan-to-model GICP against recent keyframes."""
-    from mcl3d.console import console, summary_table
+    from mcl3d.console import ProgressBars, console, summary_table
+    from mcl3d.core import config as config_io
+    from mcl3d.odometry.lidar_odometry import OdometryConfig
+    from mcl3d.odometry.odometry_summary import summary_rows
     from mcl3d.odometry.pipeline import OdometryRequest, run
 
     info = _init_backend(backend)
     overrides = {"voxel_size_m": voxel_size, "map_voxel_size_m": map_voxel_size,
                  "keyframe_overlap": keyframe_overlap,
                  "use_imu": False if no_imu else None, "deskew": False if no_deskew else None}
-    result = run(OdometryRequest(log=log, output_dir=out, config_path=config,
-                                 overrides=overrides, force=force, points_topic=points_topic,
-                                 imu_topic=imu_topic, gt_topic=gt_topic, max_scans=max_scans))
+    cfg = config_io.load(OdometryConfig, config, overrides)
+    with ProgressBars() as bars:
+        result = run(OdometryRequest(log=log, output_dir=out, config=cfg, force=force,
+                                     points_topic=points_topic, imu_topic=imu_topic,
+                                     gt_topic=gt_topic, max_scans=max_scans), bars.on_progress)
     s = result.summary
-    ms = s["ms_per_frame"]
-    rows = [("scans", f"{s['scans']} ({s['keyframes']} keyframes)"),
-            ("backend", f"{info.backend} ({info.device})"),
-            ("path length", f"{s['path_length_m']:.2f} m"),
-            ("ms per frame", f"{ms['mean']:.1f} mean, {ms['median']:.1f} median"),
-            ("degenerate frames", str(s["degenerate_frames"]))]
-    ev = s["evaluation"]
-    if ev and "ate" in ev:
-        rows.append(("ATE (first pose aligned)",
-                     f"{ev['ate']['translation_m']['rmse']:.3f} m RMSE, "
-                     f"{ev['ate']['rotation_deg']['rmse']:.2f} deg RMSE"))
-        rows.append(("RPE per 1 m", f"{ev['rpe']['translation_m']['mean']:.3f} m, "
-                                    f"{ev['rpe']['rotation_deg']['mean']:.2f} deg"))
-        if ev["drift_percent"] is not None:
-            rows.append(("end-point drift", f"{ev['drift_percent']:.2f} % of "
-                                            f"{ev['gt_path_length_m']:.1f} m"))
-    rows.append(("outputs", str(out)))
-    console.print(summary_table("Odometry", rows))
-    for note in s["notes"]:
+    console.print(summary_table("Odometry", summary_rows(s, f"{info.backend} ({info.device})",
+                                                          out)))
+    _print_notes(s.notes, s.warnings, s.num_warnings)
+
+
+def _print_notes(notes: list[str], warnings: list[str], num_warnings: int) -> None:
+    """A run's notes, and its first five warnings."""
+    from mcl3d.console import console
+
+    for note in notes:
         console.print(f"[yellow]note:[/] {note}")
-    for w in s["warnings"][:5]:
+    for w in warnings[:5]:
         console.print(f"[yellow]warning:[/] {w}")
-    if s["num_warnings"] > 5:
-        console.print(f"[yellow]... {s['num_warnings'] - 5} more warnings in the summary[/]")
+    if num_warnings > 5:
+        console.print(f"[yellow]... {num_warnings - 5} more warnings in the summary[/]")
 
 
 @app.command()
@@ -605,43 +577,22 @@ def slam(
 ) -> None:
     """Range-based 6-DoF Monte Carlo SLAM: particles with their own keyframe poses, corrected
     by Gauss-Newton steps on a GICP likelihood when they close a loop."""
-    from mcl3d.console import console, summary_table
+    from mcl3d.console import ProgressBars, console, summary_table
+    from mcl3d.core import config as config_io
     from mcl3d.slam.pipeline import SlamRequest, run
+    from mcl3d.slam.slam_config import SlamConfig
+    from mcl3d.slam.slam_summary import summary_rows
 
-    overrides = {"particles": particles, "fov_deg": fov, "seed": seed,
+    overrides = {"particles": particles, "front_end.fov_deg": fov, "seed": seed,
                  "odometry.use_imu": False if no_imu else None}
+    cfg = config_io.load(SlamConfig, config, overrides)
     info = _init_backend(backend)
-    result = run(SlamRequest(log=log, output_dir=out, config_path=config, overrides=overrides,
-                             force=force, points_topic=points_topic, imu_topic=imu_topic,
-                             gt_topic=gt_topic, max_scans=max_scans, tsdf=tsdf))
-    console.print(summary_table("Monte Carlo SLAM", slam_rows(result.summary, info, out)))
-    for note in result.summary["notes"]:
-        console.print(f"[yellow]note:[/] {note}")
-
-
-def slam_rows(s: dict, info, out: Path) -> list[tuple[str, str]]:
-    from mcl3d.mapping.pipeline import format_bytes
-
-    ms = s["ms_per_frame"]
-    stages = ", ".join(f"{k} {v:.0f}" for k, v in s["ms_per_stage"].items() if v >= 0.5)
-    rows = [("scans", f"{s['scans']} ({s['keyframes']} keyframes, {s['path_length_m']:.1f} m)"),
-            ("particles", f"{s['particles']:,} ({format_bytes(s['particle_state_bytes'])} "
-                          "of particle state)"),
-            ("backend", f"{info.backend} ({info.device})"),
-            ("ms per frame", f"{ms['mean']:.0f} mean, {ms['median']:.0f} median"),
-            ("ms per stage", stages),
-            ("loops", f"{s['loop_frames']} scans saw a loop, {s['corrected_frames']} corrected"),
-            ("pruned", f"{s['pruned_total']:,} particles"),
-            ("hypotheses at the end", f"{s['final_hypotheses']} (ESS {s['final_ess']:.0f})")]
-    if s["elevator_frames"]:
-        rows.append(("elevator", f"{s['elevator_frames']} scans"))
-    ev = s["evaluation"]
-    if ev and "slam" in ev:
-        for name, label in (("slam", "ATE SLAM"), ("online", "ATE online"),
-                            ("odometry", "ATE odometry only")):
-            rows.append((label, f"{ev[name]['ate_m']:.3f} m, {ev[name]['ate_deg']:.2f} deg "
-                                "RMSE (SE(3)-aligned)"))
-    if "tsdf" in s:
-        rows.append(("TSDF map", s["tsdf"]["path"]))
-    rows.append(("outputs", str(out)))
-    return rows
+    with ProgressBars() as bars:
+        result = run(SlamRequest(log=log, output_dir=out, config=cfg, force=force,
+                                 points_topic=points_topic, imu_topic=imu_topic,
+                                 gt_topic=gt_topic, max_scans=max_scans, tsdf=tsdf),
+                     bars.on_progress)
+    rows = summary_rows(result.summary, f"{info.backend} ({info.device})", out,
+                        result.tsdf.path if result.tsdf else None)
+    console.print(summary_table("Monte Carlo SLAM", rows))
+    _print_notes(result.summary.notes, [], 0)

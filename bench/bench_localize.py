@@ -60,11 +60,11 @@ def kernel_seconds(loc, pts, cache_block: bool, repeats: int) -> tuple[float, fl
     """(best wall s, cpu s of that call) of the likelihood kernel alone."""
     import taichi as ti
 
-    loc.upload_scan(pts)
+    loc.weigher.upload_scan(pts)
     times = []
     for _ in range(repeats + 1):
         t0, c0 = time.perf_counter(), time.process_time()
-        loc.scan_likelihood(len(pts), cache_block)
+        loc.weigher.scan_likelihood(loc.particles, len(pts), cache_block)
         ti.sync()
         times.append((time.perf_counter() - t0, time.process_time() - c0))
     return min(times[1:])
@@ -82,8 +82,10 @@ def numpy_seconds_per_particle(host, loc, pts, n_sub: int) -> float:
 
 
 def bench_case(tsdf, host, scan, T, n: int, m: int, repeats: int, numpy_sub: int) -> dict:
-    from mcl3d.localization.localizer import STAGES, Localizer, LocalizerConfig
+    from mcl3d.localization.config import LocalizerConfig
+    from mcl3d.localization.localizer import Localizer
     from mcl3d.localization.sensor_model import reduce_scan
+    from mcl3d.localization.state import STAGES
 
     cfg = LocalizerConfig.model_validate({
         "particles": n, "seed": 1,

@@ -52,7 +52,7 @@ def simulate(folder: Path, world, sensor, path, duration) -> Path:
     out = folder / f"{world}_{sensor}_{path}.mcap"
     run(SimulateRequest(world=world, sensor=sensor, trajectory=path, duration_s=duration,
                         seed=1, output=out, config_path=None, export_mesh=None,
-                        export_map=None, force=True), progress=False)
+                        export_map=None, force=True))
     return out
 
 

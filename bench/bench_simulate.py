@@ -57,11 +57,11 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for sensor in SENSORS:
             log = Path(tmp) / f"{sensor}.mcap"
-            run(SimulateRequest(args.world, sensor, args.trajectory, 0.2, 0, log, force=True),
-                progress=False)  # warm-up: imports, world build, Open3D BVH
+            # warm-up: imports, world build, Open3D BVH
+            run(SimulateRequest(args.world, sensor, args.trajectory, 0.2, 0, log, force=True))
             t0 = time.perf_counter()
             result = run(SimulateRequest(args.world, sensor, args.trajectory, args.duration, 0,
-                                         log, force=True), progress=False)
+                                         log, force=True))
             wall = time.perf_counter() - t0
             scans_per_s = result.n_scans / wall
             cast_only = raycast_only_scans_per_s(args.world, sensor, 10)

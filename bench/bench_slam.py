@@ -73,16 +73,18 @@ def setup(n: int, K: int, scans, poses):
 
     from mcl3d.core.geometry import se3_exp
     from mcl3d.registration.preprocess import estimate_covariances, voxel_downsample
-    from mcl3d.slam.monte_carlo_slam import MonteCarloSlam, SlamConfig, thin
+    from mcl3d.slam.monte_carlo_slam import MonteCarloSlam, thin
+    from mcl3d.slam.slam_config import KeyframeConfig, LoopClosureConfig, SlamConfig
 
-    cfg = SlamConfig(particles=n, max_keyframes=max(K + 1, 16), loop_min_travel_m=0.1)
+    cfg = SlamConfig(particles=n, keyframes=KeyframeConfig(capacity=max(K + 1, 16)),
+                     loop_closure=LoopClosureConfig(min_travel_m=0.1))
     slam = MonteCarloSlam(cfg)
     rng = np.random.default_rng(0)
     p = slam.particles
     clouds = []
     for k in range(K):
         points = scans[k % len(scans)][0]
-        down = voxel_downsample(points, cfg.scan_voxel_m)
+        down = voxel_downsample(points, cfg.front_end.scan_voxel_m)
         covs = estimate_covariances(down, 10)
         clouds.append((down, covs))
         noisy = poses[k % len(poses)][None] @ se3_exp(rng.normal(0, 0.01, (n, 6)))
@@ -90,10 +92,10 @@ def setup(n: int, K: int, scans, poses):
         p.t_cur.from_numpy(noisy[:, :3, 3].astype(np.float32))
         pos = poses[k % len(poses)][:3, 3]
         p.add_keyframe(float(k), 1e-5 * np.r_[k, k * pos, k], pos)  # even drift, 1 m apart
-        pts, cv = thin(down, covs, cfg.keyframe_points)
-        slam.maps.clear(k, cfg.keyframe_voxel_m)
+        pts, cv = thin(down, covs, cfg.keyframes.max_points)
+        slam.maps.clear(k, cfg.keyframes.voxel_m)
         slam.maps.insert(k, pts, cv)
-    src, src_covs = thin(*clouds[0], cfg.correction_points)
+    src, src_covs = thin(*clouds[0], cfg.correction.points)
     slam.gicp.set_source(src, src_covs)
     ti.sync()
     return slam, len(src)
@@ -115,16 +117,15 @@ def one_frame(slam, num_src: int, travel_m: float, step: int) -> dict[str, float
     p.predict(np.eye(4), np.diag([1e-8] * 3 + [1e-6] * 3), step)
     ti.sync()
     t1 = time.perf_counter()
-    looping = p.select_neighbours(travel_m, cfg.loop_min_travel_m)
+    looping = p.select_neighbours(travel_m, cfg.loop_closure.min_travel_m)
     ti.sync()
     t2 = time.perf_counter()
     here = p.positions()[0]
     p.correct(travel_m, 1e-5 * np.r_[travel_m, travel_m * here, travel_m], here, num_src,
-              cfg.min_inliers, np.deg2rad(cfg.max_correction_deg), cfg.max_correction_m,
-              np.deg2rad(cfg.settled_correction_deg), cfg.settled_correction_m)
+              cfg.correction)
     ti.sync()
     t3 = time.perf_counter()
-    p.weigh(num_src, cfg.outlier_cost, cfg.points_weight)
+    p.weigh(num_src, cfg.likelihood)
     ti.sync()
     t4 = time.perf_counter()
     slam._prune(step, True)

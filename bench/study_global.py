@@ -70,7 +70,7 @@ def make_data(work: Path, world: str, seed: int, duration_s: float) -> tuple[Pat
     return log, tsdf, work / f"{world}_{seed}_gt.tum"
 
 
-KIDNAP_STD = [0.05, 0.05, 0.02, 0.01, 0.01, 0.02]  # the test's initial spread
+KIDNAP_STD = [0.05, 0.05, 0.02, *np.degrees([0.01, 0.01, 0.02]).tolist()]  # test's spread (m, deg)
 
 
 def make_kidnap_data(work: Path, seed: int, duration_s: float) -> tuple[Path, Path, Path]:
@@ -89,7 +89,7 @@ def make_kidnap_data(work: Path, seed: int, duration_s: float) -> tuple[Path, Pa
 def kidnap_once(work: Path, seed: int, args, cache: MapCache) -> dict:
     """One kidnap run: detection, re-seeding and the scan of the recovery."""
     from mcl3d.io.trajectory import read_tum
-    from mcl3d.localization.pipeline import LocalizeConfig, run
+    from mcl3d.localization.pipeline import LocalizeConfig, LocalizeRequest, run
 
     log, tsdf, gt_tum = make_kidnap_data(work, seed, args.kidnap_duration)
     cache.current = tsdf
@@ -98,7 +98,7 @@ def kidnap_once(work: Path, seed: int, args, cache: MapCache) -> dict:
         "particles": args.kidnap_particles, "seed": seed,
         "init": {"mode": "gt", "std": KIDNAP_STD}}})
     t0 = time.perf_counter()
-    res = run(log, tsdf, out, cfg, force=True, backend="cpu")
+    res = run(LocalizeRequest(log, tsdf, out, cfg, force=True, backend="cpu"))
     wall = time.perf_counter() - t0
     d, a = scan_errors(out, gt_tum)
     gt = read_tum(gt_tum)
@@ -209,23 +209,24 @@ class StopWhenStable:
         self.run = 0
         self.states: list[str] = []
 
-    def __call__(self, result, done: int, total: int) -> None:
-        self.states.append(result.state)
-        self.run = self.run + 1 if result.state == "converged" else 0
+    def __call__(self, progress) -> None:
+        state = progress.status.split()[0]  # the filter state, then the match ratio
+        self.states.append(state)
+        self.run = self.run + 1 if state == "converged" else 0
         if self.run >= self.stable:
             raise KeyboardInterrupt
 
 
 def localize_once(log: Path, tsdf: Path, out: Path, n: int, seed: int, args) -> dict:
     from mcl3d.core.errors import RunInterrupted
-    from mcl3d.localization.pipeline import LocalizeConfig, run
+    from mcl3d.localization.pipeline import LocalizeConfig, LocalizeRequest, run
 
     cfg = LocalizeConfig.model_validate({"max_scans": args.max_scans, "localizer": {
         "particles": n, "seed": seed, "init": {"mode": "global"}}})
     stop = StopWhenStable(args.stable)
     t0 = time.perf_counter()
     try:
-        run(log, tsdf, out, cfg, force=True, backend="cpu", on_progress=stop)
+        run(LocalizeRequest(log, tsdf, out, cfg, force=True, backend="cpu"), on_progress=stop)
         stopped_early = False
     except RunInterrupted:
         stopped_early = True

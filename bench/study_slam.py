@@ -2,7 +2,7 @@
 
 Two experiments after the paper's §IV, on simulated logs (several seeds each):
 - forest: a MID-360 driving a loop through rows of trees, points behind the sensor cropped
-  (`fov_deg` 180, as the paper did) so the odometry drifts and the loop is ambiguous;
+  (`front_end.fov_deg` 180, as the paper did) so the odometry drifts and the loop is ambiguous;
 - elevator: a VLP-16 drives into an elevator on the top floor of a building of identical
   floors, rides one floor down and drives out; scored by the final height error of the
   lower floor, with and without the IMU.
@@ -26,7 +26,7 @@ RESULTS = Path(__file__).resolve().parent / "results"
 CASES = {
     "forest": dict(world="forest", sensor="mid360", trajectory="ground", duration_s=130.0,
                    overrides={"world.forest_rows": 6, "world.forest_trees_per_row": 10},
-                   slam={"fov_deg": 180.0}),
+                   slam={"front_end.fov_deg": 180.0}),
     "elevator": dict(world="building", sensor="vlp16", trajectory="elevator", duration_s=60.0,
                      overrides={}, slam={}),
     "elevator, no IMU": dict(world="building", sensor="vlp16", trajectory="elevator",
@@ -61,8 +61,10 @@ def floor_error_m(out: Path, log: Path) -> float:
 
 
 def main() -> None:
+    from mcl3d.core import config as config_io
     from mcl3d.core import runtime
     from mcl3d.slam.pipeline import SlamRequest, run
+    from mcl3d.slam.slam_config import SlamConfig
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--particles", type=int, default=2000)
@@ -81,17 +83,14 @@ def main() -> None:
         for seed in args.seeds:
             log = simulate(case, seed)
             out = args.runs / f"{name.replace(', ', '_').replace(' ', '_')}_{seed}"
-            result = run(SlamRequest(log=log, output_dir=out, force=True,
-                                     overrides={"particles": args.particles, "seed": seed,
-                                                **case["slam"]}), progress=False)
-            s = result.summary
-            ev = s["evaluation"]
-            row = {"case": name, "seed": seed, "scans": s["scans"],
-                   "path_m": s["path_length_m"], "keyframes": s["keyframes"],
-                   "ate_odometry_m": ev["odometry"]["ate_m"], "ate_slam_m": ev["slam"]["ate_m"],
-                   "ate_online_m": ev["online"]["ate_m"],
-                   "ms_per_frame": s["ms_per_frame"]["median"],
-                   "loop_frames": s["loop_frames"]}
+            cfg = config_io.load(SlamConfig, None, {"particles": args.particles, "seed": seed,
+                                                    **case["slam"]})
+            s = run(SlamRequest(log=log, output_dir=out, config=cfg, force=True)).summary
+            ev = s.accuracy
+            row = {"case": name, "seed": seed, "scans": s.scans, "path_m": s.path_length_m,
+                   "keyframes": s.keyframes, "ate_odometry_m": ev.odometry.ate_m,
+                   "ate_slam_m": ev.slam.ate_m, "ate_online_m": ev.online.ate_m,
+                   "ms_per_frame": s.ms_per_frame.median, "loop_frames": s.loop_frames}
             if case["trajectory"] == "elevator":
                 row["floor_error_m"] = floor_error_m(out, log)
             rows.append(row)

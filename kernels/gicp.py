@@ -29,6 +29,11 @@ Levenberg-Marquardt acceptance and proposes the next candidate. The three are Ta
 functions run by the one kernel `iterate`: one launch per iteration. A small problem (one
 scan of odometry) runs them all on the calling thread on cpu; `download_results` also counts
 the scan's overlap with the keyframe maps in the same launch.
+
+The state arrives as `ti.template()` containers (mcl3d/registration/gicp_state.py): `pool`
+(points, cov_rows), `rows` (group, map, q, t, start, count), `poses` (q_cur, t_cur, q_cand,
+t_cand, lam, status, iters, and the sums `acc`, `best`), `tasks` (sums H, b, e, n per task)
+and `maps` (the Gaussian voxel maps: hash table `vox`, voxel size `res` per map).
 """
 
 import taichi as ti
@@ -160,150 +165,173 @@ def sym_to_mat(c: vec6) -> ti.math.mat3:
 
 
 @ti.func
-def linearize(src_pts: ti.template(), src_cov: ti.template(), row_group: ti.template(),
-              row_map: ti.template(), row_q: ti.template(), row_t: ti.template(),
-              row_start: ti.template(), row_count: ti.template(), num_rows: ti.i32,
-              chunk: ti.i32, num_chunks: ti.i32, q_cand: ti.template(), t_cand: ti.template(),
-              status: ti.template(), vox: ti.template(), res: ti.template(), buckets: ti.i32,
-              max_probes: ti.i32, acc_H: ti.template(), acc_b: ti.template(),
-              acc_e: ti.template(), acc_n: ti.template(), exclusive: ti.template(),
+def linearize(pool: ti.template(), rows: ti.template(), num_rows: ti.i32, chunk: ti.i32,
+              num_chunks: ti.i32, poses: ti.template(), maps: ti.template(), buckets: ti.i32,
+              max_probes: ti.i32, tasks: ti.template(), exclusive: ti.template(),
               plane_cov: ti.template(), serial: ti.template(), facing_cos: ti.f32):
-    """`src_cov` holds upper(C_A) (see rotated_cov_basis), or (n, α, β, 0) with `plane_cov`
-    (see rotated_source_cov). `exclusive`: every group has one row and one chunk, so each task
-    owns its group's sums and stores them in acc_*[group]; otherwise task (r, c) stores its
-    sums in acc_*[r * num_chunks + c] (zeros when it has none) and `reduce_tasks` adds them up
-    in a fixed order: float atomics would make every run differ in the last bits, and a
-    tracker or particle filter turns those into different trajectories. `serial`: a small
-    problem (one scan) runs on the calling thread, where waking the pool costs more than it
-    saves (and on a busy machine a descheduled worker stalls the launch). `facing_cos`: see
-    faces_map (plane covariances only)."""
+    """Every running row's sums, one task per (row, chunk of its points). `pool.cov_rows`
+    holds upper(C_A) (see rotated_cov_basis), or (n, α, β, 0) with `plane_cov` (see
+    rotated_source_cov). `exclusive`: every group has one row and one chunk, so each task owns
+    its group's sums and stores them in tasks[group] (`tasks` is then poses.acc); otherwise
+    task (r, c) stores its sums in tasks[r * num_chunks + c] (zeros when it has none) and
+    `reduce_tasks` adds them up in a fixed order: float atomics would make every run differ in
+    the last bits, and a tracker or particle filter turns those into different trajectories.
+    `serial`: a small problem (one scan) runs on the calling thread, where waking the pool
+    costs more than it saves (and on a busy machine a descheduled worker stalls the launch).
+    `facing_cos`: see faces_map (plane covariances only)."""
     ti.loop_config(serialize=serial)
     for r, c in ti.ndrange(num_rows, num_chunks):
-        g = row_group[r]
+        g = rows.group[r]
         begin = c * chunk
         slot = g
         if ti.static(not exclusive):
             slot = r * num_chunks + c
-            acc_H[slot] = ti.Matrix.zero(ti.f32, 6, 6)
-            acc_b[slot] = ti.Vector.zero(ti.f32, 6)
-            acc_e[slot] = 0.0
-            acc_n[slot] = 0
-        if status[g] == RUNNING and begin < row_count[r]:
-            m = row_map[r]
-            quat, t = pose_compose(row_q[r], row_t[r], q_cand[g], t_cand[g])
-            R = quat_to_mat(quat)
-            B = ti.Matrix.zero(ti.f32, 6, 6)
-            if ti.static(not plane_cov):
-                B = rotated_cov_basis(R)
-            inv_res = 1.0 / res[m]
-            # blocks of H_c = [[Σ hat(q)ᵀ M hat(q), −(Σ M hat(q))ᵀ], [−Σ M hat(q), Σ M]] and
-            # b_c = [Σ hat(q)ᵀ M e, −Σ M e]: 21 sums (two symmetric blocks), no products by 0/1
-            S_rr = vec6(0.0)
-            S_tr = ti.math.mat3(0.0)
-            S_tt = vec6(0.0)
-            b_r = vec3(0.0)
-            b_t = vec3(0.0)
-            err = 0.0
-            n = 0
-            first = row_start[r] + begin
-            count = ti.min(chunk, row_count[r] - begin)
-            for block in range((count + LOOKAHEAD - 1) // LOOKAHEAD):
-                # loops per block of points (the pool is padded by LOOKAHEAD): the home slots
-                # (arithmetic only); the key check against each home slot's key (1: found,
-                # 0: a miss or padding, 2: another key is there); the rare 2s probe on for
-                # their slot; then the math, its mean and covariance read from the slot's
-                # cache line (a miss weighs 0). All but the probing are branch-free so that
-                # they vectorize. Computing the slots apart, before any table read, keeps the
-                # reads cheap (~15%); settling every slot before the math keeps the probing
-                # points in the vectorized math (at half load, 41% less time).
-                slots = ti.Vector.zero(ti.i32, LOOKAHEAD)
-                qs = ti.Matrix.zero(ti.f32, 3, LOOKAHEAD)  # R μ_A of each point
-                for j in range(LOOKAHEAD):
-                    q = R @ src_pts[first + block * LOOKAHEAD + j]
-                    for a in ti.static(range(3)):
-                        qs[a, j] = q[a]
-                    slots[j] = probe_slot(ti.cast(ti.floor((q + t) * inv_res), ti.i32), 0, m,
-                                          buckets)
-                found = ti.Vector.zero(ti.i32, LOOKAHEAD)
-                num_probe_on = 0
-                for j in range(LOOKAHEAD):
-                    q = vec3(qs[0, j], qs[1, j], qs[2, j])
-                    key = vox[slots[j]].key
-                    f = same_key(key, pack_key(ti.cast(ti.floor((q + t) * inv_res), ti.i32)))
-                    on = (block * LOOKAHEAD + j < count) & (key[1] != EMPTY_KEY)
-                    found[j] = ti.select(on & f, 1, ti.select(on, 2, 0))
-                    num_probe_on += ti.select(on & ~f, 1, 0)
-                if num_probe_on > 0:
-                    for j in range(LOOKAHEAD):
-                        if found[j] == 2:
-                            q = vec3(qs[0, j], qs[1, j], qs[2, j])
-                            s = lookup_from(vox, ti.cast(ti.floor((q + t) * inv_res), ti.i32), 1,
-                                            m, buckets, max_probes)
-                            found[j] = ti.select(s >= 0, 1, 0)
-                            slots[j] = ti.select(s >= 0, s, slots[j])
-                for j in range(LOOKAHEAD):
-                    k = first + block * LOOKAHEAD + j
-                    s = slots[j]
-                    q = vec3(qs[0, j], qs[1, j], qs[2, j])
-                    hit = found[j]
-                    rn = vec3(0.0)
-                    if ti.static(plane_cov):
-                        rn = R @ vec3(src_cov[k][0], src_cov[k][1], src_cov[k][2])
-                        hit &= faces_map(q + t, rn, src_pts[k], src_cov[k], facing_cos)
-                    rr, tr, tt, br, bt, ee = point_terms(B, q, t, vox[s].mean, vox[s].cov,
-                                                         src_cov[k], rn, hit, plane_cov)
-                    S_rr += rr
-                    S_tr += tr
-                    S_tt += tt
-                    b_r += br
-                    b_t += bt
-                    err += ee
-                    n += ti.select(hit, 1, 0)
-            if n > 0:
-                H_r, b_r6 = to_right_perturbation(R, S_rr, S_tr, S_tt, b_r, b_t)
-                acc_H[slot] = H_r
-                acc_b[slot] = b_r6
-                acc_e[slot] = err
-                acc_n[slot] = n
+            tasks.H[slot] = ti.Matrix.zero(ti.f32, 6, 6)
+            tasks.b[slot] = ti.Vector.zero(ti.f32, 6)
+            tasks.e[slot] = 0.0
+            tasks.n[slot] = 0
+        if poses.status[g] == RUNNING and begin < rows.count[r]:
+            linearize_task(pool, rows, r, begin, ti.min(chunk, rows.count[r] - begin), poses, g,
+                           maps, buckets, max_probes, tasks, slot, plane_cov, facing_cos)
 
 
 @ti.func
-def reduce_tasks(num_rows: ti.i32, num_chunks: ti.i32, row_group: ti.template(),
-                 status: ti.template(), task_H: ti.template(), task_b: ti.template(),
-                 task_e: ti.template(), task_n: ti.template(), acc_H: ti.template(),
-                 acc_b: ti.template(), acc_e: ti.template(), acc_n: ti.template(),
-                 one_row_per_group: ti.template()):
-    """Add each running group's task sums in row, then chunk order (see linearize): in
-    parallel over rows when every group has one row (summed in registers, stored once: with
-    `acc[g] +=` in the chunk loop, Vulkan on lavapipe kept only some chunks), else in one
-    ordered pass."""
+def linearize_task(pool: ti.template(), rows: ti.template(), r: ti.i32, begin: ti.i32,
+                   count: ti.i32, poses: ti.template(), g: ti.i32, maps: ti.template(),
+                   buckets: ti.i32, max_probes: ti.i32, tasks: ti.template(), slot: ti.i32,
+                   plane_cov: ti.template(), facing_cos: ti.f32):
+    """Sums of the `count` points of row r from its point `begin`, at its group g's candidate
+    pose, into tasks[slot] (left as they are when no point found a voxel).
+
+    Per block of LOOKAHEAD points (the pool is padded by LOOKAHEAD): the home slots
+    (block_home_slots), the key checks and the rare probing (settle_slots), then the math,
+    its mean and covariance read from the slot's cache line (a miss weighs 0). All but the
+    probing are branch-free so that they vectorize. Computing the slots apart, before any
+    table read, keeps the reads cheap (~15%); settling every slot before the math keeps the
+    probing points in the vectorized math (at half load, 41% less time)."""
+    m = rows.map[r]
+    quat, t = pose_compose(rows.q[r], rows.t[r], poses.q_cand[g], poses.t_cand[g])
+    R = quat_to_mat(quat)
+    B = ti.Matrix.zero(ti.f32, 6, 6)
+    if ti.static(not plane_cov):
+        B = rotated_cov_basis(R)
+    inv_res = 1.0 / maps.res[m]
+    # blocks of H_c = [[Σ hat(q)ᵀ M hat(q), −(Σ M hat(q))ᵀ], [−Σ M hat(q), Σ M]] and
+    # b_c = [Σ hat(q)ᵀ M e, −Σ M e]: 21 sums (two symmetric blocks), no products by 0/1
+    S_rr = vec6(0.0)
+    S_tr = ti.math.mat3(0.0)
+    S_tt = vec6(0.0)
+    b_r = vec3(0.0)
+    b_t = vec3(0.0)
+    err = 0.0
+    n = 0
+    first = rows.start[r] + begin
+    for block in range((count + LOOKAHEAD - 1) // LOOKAHEAD):
+        slots = ti.Vector.zero(ti.i32, LOOKAHEAD)
+        qs = ti.Matrix.zero(ti.f32, 3, LOOKAHEAD)  # R μ_A of each point
+        block_home_slots(pool, first + block * LOOKAHEAD, R, t, inv_res, m, buckets, qs, slots)
+        found = ti.Vector.zero(ti.i32, LOOKAHEAD)
+        settle_slots(maps, qs, t, inv_res, count - block * LOOKAHEAD, m, buckets, max_probes,
+                     slots, found)
+        for j in range(LOOKAHEAD):
+            k = first + block * LOOKAHEAD + j
+            s = slots[j]
+            q = vec3(qs[0, j], qs[1, j], qs[2, j])
+            hit = found[j]
+            rn = vec3(0.0)
+            if ti.static(plane_cov):
+                rn = R @ vec3(pool.cov_rows[k][0], pool.cov_rows[k][1], pool.cov_rows[k][2])
+                hit &= faces_map(q + t, rn, pool.points[k], pool.cov_rows[k], facing_cos)
+            rr, tr, tt, br, bt, ee = point_terms(B, q, t, maps.vox[s].mean, maps.vox[s].cov,
+                                                 pool.cov_rows[k], rn, hit, plane_cov)
+            S_rr += rr
+            S_tr += tr
+            S_tt += tt
+            b_r += br
+            b_t += bt
+            err += ee
+            n += ti.select(hit, 1, 0)
+    if n > 0:
+        H_r, b_r6 = to_right_perturbation(R, S_rr, S_tr, S_tt, b_r, b_t)
+        tasks.H[slot] = H_r
+        tasks.b[slot] = b_r6
+        tasks.e[slot] = err
+        tasks.n[slot] = n
+
+
+@ti.func
+def block_home_slots(pool: ti.template(), first: ti.i32, R: ti.math.mat3, t: vec3,
+                     inv_res: ti.f32, m: ti.i32, buckets: ti.i32, qs: ti.template(),
+                     slots: ti.template()):
+    """q = R μ_A of the block's points from `first` into the columns of `qs`, the home slot
+    of q + t's voxel in map m into `slots`: arithmetic only, no table read."""
+    for j in range(LOOKAHEAD):
+        q = R @ pool.points[first + j]
+        for a in ti.static(range(3)):
+            qs[a, j] = q[a]
+        slots[j] = probe_slot(ti.cast(ti.floor((q + t) * inv_res), ti.i32), 0, m, buckets)
+
+
+@ti.func
+def settle_slots(maps: ti.template(), qs: ti.template(), t: vec3, inv_res: ti.f32,
+                 left: ti.i32, m: ti.i32, buckets: ti.i32, max_probes: ti.i32,
+                 slots: ti.template(), found: ti.template()):
+    """found[j] = 1 where point j's voxel sits in slots[j], 0 for a miss or padding (j >=
+    `left`, the points left in the row). The key check against each home slot is branch-free
+    (2: another key is there); only those 2s probe on for their slot."""
+    num_probe_on = 0
+    for j in range(LOOKAHEAD):
+        q = vec3(qs[0, j], qs[1, j], qs[2, j])
+        key = maps.vox[slots[j]].key
+        f = same_key(key, pack_key(ti.cast(ti.floor((q + t) * inv_res), ti.i32)))
+        on = (j < left) & (key[1] != EMPTY_KEY)
+        found[j] = ti.select(on & f, 1, ti.select(on, 2, 0))
+        num_probe_on += ti.select(on & ~f, 1, 0)
+    if num_probe_on > 0:
+        for j in range(LOOKAHEAD):
+            if found[j] == 2:
+                q = vec3(qs[0, j], qs[1, j], qs[2, j])
+                s = lookup_from(maps.vox, ti.cast(ti.floor((q + t) * inv_res), ti.i32), 1, m,
+                                buckets, max_probes)
+                found[j] = ti.select(s >= 0, 1, 0)
+                slots[j] = ti.select(s >= 0, s, slots[j])
+
+
+@ti.func
+def reduce_tasks(num_rows: ti.i32, num_chunks: ti.i32, rows: ti.template(),
+                 poses: ti.template(), tasks: ti.template(), one_row_per_group: ti.template()):
+    """Add each running group's task sums into poses.acc in row, then chunk order (see
+    linearize): in parallel over rows when every group has one row (summed in registers,
+    stored once: with `acc[g] +=` in the chunk loop, Vulkan on lavapipe kept only some
+    chunks), else in one ordered pass."""
+    acc = poses.acc
     if ti.static(one_row_per_group):
         for r in range(num_rows):
-            g = row_group[r]
-            if status[g] == RUNNING:
-                H = acc_H[g]
-                b = acc_b[g]
-                e = acc_e[g]
-                n = acc_n[g]
+            g = rows.group[r]
+            if poses.status[g] == RUNNING:
+                H = acc.H[g]
+                b = acc.b[g]
+                e = acc.e[g]
+                n = acc.n[g]
                 for c in range(num_chunks):
                     k = r * num_chunks + c
-                    H += task_H[k]
-                    b += task_b[k]
-                    e += task_e[k]
-                    n += task_n[k]
-                acc_H[g] = H
-                acc_b[g] = b
-                acc_e[g] = e
-                acc_n[g] = n
+                    H += tasks.H[k]
+                    b += tasks.b[k]
+                    e += tasks.e[k]
+                    n += tasks.n[k]
+                acc.H[g] = H
+                acc.b[g] = b
+                acc.e[g] = e
+                acc.n[g] = n
     else:
         ti.loop_config(serialize=True)
         for k in range(num_rows * num_chunks):
-            g = row_group[k // num_chunks]
-            if status[g] == RUNNING:
-                acc_H[g] += task_H[k]
-                acc_b[g] += task_b[k]
-                acc_e[g] += task_e[k]
-                acc_n[g] += task_n[k]
+            g = rows.group[k // num_chunks]
+            if poses.status[g] == RUNNING:
+                acc.H[g] += tasks.H[k]
+                acc.b[g] += tasks.b[k]
+                acc.e[g] += tasks.e[k]
+                acc.n[g] += tasks.n[k]
 
 
 @ti.func
@@ -357,12 +385,7 @@ def damped_step(H, b, lam: ti.f32):
 
 @ti.func
 def step(num_groups: ti.i32, use_lm: ti.i32, rot_eps: ti.f32, trans_eps: ti.f32,
-         q_cur: ti.template(), t_cur: ti.template(), q_cand: ti.template(),
-         t_cand: ti.template(), lam: ti.template(), status: ti.template(),
-         iters: ti.template(), acc_H: ti.template(), acc_b: ti.template(),
-         acc_e: ti.template(), acc_n: ti.template(), best_H: ti.template(),
-         best_b: ti.template(), best_e: ti.template(), best_n: ti.template(),
-         serial: ti.template()) -> ti.i32:
+         poses: ti.template(), serial: ti.template()) -> ti.i32:
     """Accept or reject each running group's candidate, then propose the next one.
 
     The first linearization (iters == 0) is always accepted; Gauss-Newton accepts every
@@ -371,24 +394,28 @@ def step(num_groups: ti.i32, use_lm: ti.i32, rot_eps: ti.f32, trans_eps: ti.f32,
     Returns the number of groups still running. `serial` (few groups) stays on the calling
     thread: waking the thread pool costs more than the work, much more on a busy machine."""
     running = 0
+    acc = poses.acc
+    best = poses.best
+    lam = ti.static(poses.lam)
+    status = ti.static(poses.status)
     ti.loop_config(serialize=serial)
     for g in range(num_groups):
         if status[g] == RUNNING:
-            n = acc_n[g]
-            accept = n > 0 and (iters[g] == 0 or use_lm == 0 or acc_e[g] <= best_e[g])
+            n = acc.n[g]
+            accept = n > 0 and (poses.iters[g] == 0 or use_lm == 0 or acc.e[g] <= best.e[g])
             if accept:
-                q_cur[g] = q_cand[g]
-                t_cur[g] = t_cand[g]
-                best_H[g] = acc_H[g]
-                best_b[g] = acc_b[g]
-                best_e[g] = acc_e[g]
-                best_n[g] = n
+                poses.q_cur[g] = poses.q_cand[g]
+                poses.t_cur[g] = poses.t_cand[g]
+                best.H[g] = acc.H[g]
+                best.b[g] = acc.b[g]
+                best.e[g] = acc.e[g]
+                best.n[g] = n
                 if use_lm:
                     lam[g] = ti.max(lam[g] * 0.1, LM_MIN_LAMBDA)
             elif use_lm:
                 lam[g] = lam[g] * 10.0
-            iters[g] += 1
-            if best_n[g] == 0 or (not accept and use_lm == 0):
+            poses.iters[g] += 1
+            if best.n[g] == 0 or (not accept and use_lm == 0):
                 status[g] = NO_CORRESPONDENCES
             elif use_lm and lam[g] > LM_MAX_LAMBDA:
                 status[g] = STALLED
@@ -396,7 +423,7 @@ def step(num_groups: ti.i32, use_lm: ti.i32, rot_eps: ti.f32, trans_eps: ti.f32,
                 damping = GN_DAMPING
                 if use_lm:
                     damping = lam[g]
-                delta = damped_step(best_H[g], best_b[g], damping)
+                delta = damped_step(best.H[g], best.b[g], damping)
                 w = vec3(delta[0], delta[1], delta[2])
                 v = vec3(delta[3], delta[4], delta[5])
                 # after a rejection the step is small because λ grew, not because the pose
@@ -404,90 +431,70 @@ def step(num_groups: ti.i32, use_lm: ti.i32, rot_eps: ti.f32, trans_eps: ti.f32,
                 if w.norm() < rot_eps and v.norm() < trans_eps and accept:
                     status[g] = CONVERGED
                 else:
-                    q_cand[g], t_cand[g] = pose_retract(q_cur[g], t_cur[g], w, v)
+                    poses.q_cand[g], poses.t_cand[g] = pose_retract(poses.q_cur[g],
+                                                                    poses.t_cur[g], w, v)
                     running += 1
-            acc_H[g] = ti.Matrix.zero(ti.f32, 6, 6)
-            acc_b[g] = ti.Vector.zero(ti.f32, 6)
-            acc_e[g] = 0.0
-            acc_n[g] = 0
+            acc.H[g] = ti.Matrix.zero(ti.f32, 6, 6)
+            acc.b[g] = ti.Vector.zero(ti.f32, 6)
+            acc.e[g] = 0.0
+            acc.n[g] = 0
     return running
 
 
 @ti.kernel
-def iterate(src_pts: ti.template(), src_cov: ti.template(), row_group: ti.template(),
-            row_map: ti.template(), row_q: ti.template(), row_t: ti.template(),
-            row_start: ti.template(), row_count: ti.template(), num_rows: ti.i32, chunk: ti.i32,
-            num_chunks: ti.i32, vox: ti.template(), res: ti.template(), buckets: ti.i32,
-            max_probes: ti.i32, task_H: ti.template(), task_b: ti.template(),
-            task_e: ti.template(), task_n: ti.template(), exclusive: ti.template(),
-            plane_cov: ti.template(), one_row_per_group: ti.template(), num_groups: ti.i32,
-            use_lm: ti.i32, rot_eps: ti.f32, trans_eps: ti.f32, q_cur: ti.template(),
-            t_cur: ti.template(), q_cand: ti.template(), t_cand: ti.template(),
-            lam: ti.template(), status: ti.template(), iters: ti.template(),
-            acc_H: ti.template(), acc_b: ti.template(), acc_e: ti.template(),
-            acc_n: ti.template(), best_H: ti.template(), best_b: ti.template(),
-            best_e: ti.template(), best_n: ti.template(), serial: ti.template(),
-            facing_cos: ti.f32) -> ti.i32:
+def iterate(pool: ti.template(), rows: ti.template(), num_rows: ti.i32, chunk: ti.i32,
+            num_chunks: ti.i32, maps: ti.template(), buckets: ti.i32, max_probes: ti.i32,
+            tasks: ti.template(), poses: ti.template(), num_groups: ti.i32, use_lm: ti.i32,
+            rot_eps: ti.f32, trans_eps: ti.f32, facing_cos: ti.f32, exclusive: ti.template(),
+            plane_cov: ti.template(), one_row_per_group: ti.template(),
+            serial: ti.template()) -> ti.i32:
     """One Gauss-Newton/LM iteration of every running group in one launch: `linearize`
-    (into task_* sums, which are the acc_* fields when `exclusive`), `reduce_tasks` (unless
+    (into the `tasks` sums, which are poses.acc when `exclusive`), `reduce_tasks` (unless
     `exclusive`), then `step`; returns how many groups run on. One launch instead of three
     matters for small problems (a scan of odometry), where launching costs more than the math.
     `serial` (a small problem, see linearize) runs all three on the calling thread."""
-    linearize(src_pts, src_cov, row_group, row_map, row_q, row_t, row_start, row_count,
-              num_rows, chunk, num_chunks, q_cand, t_cand, status, vox, res, buckets,
-              max_probes, task_H, task_b, task_e, task_n, exclusive, plane_cov, serial,
-              facing_cos)
+    linearize(pool, rows, num_rows, chunk, num_chunks, poses, maps, buckets, max_probes, tasks,
+              exclusive, plane_cov, serial, facing_cos)
     if ti.static(not exclusive):
-        reduce_tasks(num_rows, num_chunks, row_group, status, task_H, task_b, task_e, task_n,
-                     acc_H, acc_b, acc_e, acc_n, one_row_per_group)
-    return step(num_groups, use_lm, rot_eps, trans_eps, q_cur, t_cur, q_cand, t_cand, lam,
-                status, iters, acc_H, acc_b, acc_e, acc_n, best_H, best_b, best_e, best_n,
-                serial)
+        reduce_tasks(num_rows, num_chunks, rows, poses, tasks, one_row_per_group)
+    return step(num_groups, use_lm, rot_eps, trans_eps, poses, serial)
 
 
 @ti.func
-def reset(num_groups: ti.i32, lm_lambda: ti.f32, q_cur: ti.template(),
-                 t_cur: ti.template(), q_cand: ti.template(), t_cand: ti.template(),
-                 lam: ti.template(), status: ti.template(), iters: ti.template(),
-                 acc_H: ti.template(), acc_b: ti.template(), acc_e: ti.template(),
-                 acc_n: ti.template(), best_n: ti.template(), serial: ti.template()):
+def reset(num_groups: ti.i32, lm_lambda: ti.f32, poses: ti.template(), serial: ti.template()):
     """Start every group at its uploaded candidate pose (the first step accepts it, and
     divides λ by 10, hence the factor). `serial` as in `step`."""
     ti.loop_config(serialize=serial)
     for g in range(num_groups):
-        q_cur[g] = q_cand[g]
-        t_cur[g] = t_cand[g]
-        lam[g] = lm_lambda * 10.0
-        status[g] = RUNNING
-        iters[g] = 0
-        acc_H[g] = ti.Matrix.zero(ti.f32, 6, 6)
-        acc_b[g] = ti.Vector.zero(ti.f32, 6)
-        acc_e[g] = 0.0
-        acc_n[g] = 0
-        best_n[g] = 0
+        poses.q_cur[g] = poses.q_cand[g]
+        poses.t_cur[g] = poses.t_cand[g]
+        poses.lam[g] = lm_lambda * 10.0
+        poses.status[g] = RUNNING
+        poses.iters[g] = 0
+        poses.acc.H[g] = ti.Matrix.zero(ti.f32, 6, 6)
+        poses.acc.b[g] = ti.Vector.zero(ti.f32, 6)
+        poses.acc.e[g] = 0.0
+        poses.acc.n[g] = 0
+        poses.best.n[g] = 0
 
 
 @ti.kernel
-def reset_groups(num_groups: ti.i32, lm_lambda: ti.f32, q_cur: ti.template(),
-                 t_cur: ti.template(), q_cand: ti.template(), t_cand: ti.template(),
-                 lam: ti.template(), status: ti.template(), iters: ti.template(),
-                 acc_H: ti.template(), acc_b: ti.template(), acc_e: ti.template(),
-                 acc_n: ti.template(), best_n: ti.template(), serial: ti.template()):
-    reset(num_groups, lm_lambda, q_cur, t_cur, q_cand, t_cand, lam, status, iters, acc_H,
-          acc_b, acc_e, acc_n, best_n, serial)
+def reset_groups(num_groups: ti.i32, lm_lambda: ti.f32, poses: ti.template(),
+                 serial: ti.template()):
+    reset(num_groups, lm_lambda, poses, serial)
 
 
 @ti.kernel
-def upload_source(src: ti.types.ndarray(), n: ti.i32, src_pts: ti.template(),
-                  src_cov: ti.template(), serial: ti.template()):
+def upload_source(src: ti.types.ndarray(), n: ti.i32, pool: ti.template(),
+                  serial: ti.template()):
     """Rows (x, y, z, c0..c5) into the source pool: one launch instead of two, on the calling
     thread on cpu (`serial`: a copy gains nothing from waking the pool, and loses much on a
     busy machine), in parallel on a GPU."""
     ti.loop_config(serialize=serial)
     for i in range(n):
-        src_pts[i] = vec3(src[i, 0], src[i, 1], src[i, 2])
+        pool.points[i] = vec3(src[i, 0], src[i, 1], src[i, 2])
         for a in ti.static(range(6)):
-            src_cov[i][a] = src[i, 3 + a]
+            pool.cov_rows[i][a] = src[i, 3 + a]
 
 
 @ti.func
@@ -521,69 +528,60 @@ def pose_from_row(a: ti.types.ndarray(), i: ti.i32):
 
 @ti.kernel
 def upload_problem(rows_i: ti.types.ndarray(), rows_f: ti.types.ndarray(), num_rows: ti.i32,
-                   poses: ti.types.ndarray(), num_groups: ti.i32, row_group: ti.template(),
-                   row_map: ti.template(), row_start: ti.template(), row_count: ti.template(),
-                   row_q: ti.template(), row_t: ti.template(), q_cand: ti.template(),
-                   t_cand: ti.template(), lm_lambda: ti.f32, q_cur: ti.template(),
-                   t_cur: ti.template(), lam: ti.template(), status: ti.template(),
-                   iters: ti.template(), acc_H: ti.template(), acc_b: ti.template(),
-                   acc_e: ti.template(), acc_n: ti.template(), best_n: ti.template(),
-                   serial: ti.template()):
+                   initial: ti.types.ndarray(), num_groups: ti.i32, lm_lambda: ti.f32,
+                   rows: ti.template(), poses: ti.template(), serial: ti.template()):
     """Rows (group, map, start, count | R, t of the left pose) and the initial poses (R, t),
     then `reset_groups`: one launch instead of nine, which matters per scan (odometry) on a
     busy machine. Serial for few groups (`serial` as in `step`)."""
     ti.loop_config(serialize=serial)
     for r in range(num_rows):
-        row_group[r] = rows_i[r, 0]
-        row_map[r] = rows_i[r, 1]
-        row_start[r] = rows_i[r, 2]
-        row_count[r] = rows_i[r, 3]
-        row_q[r], row_t[r] = pose_from_row(rows_f, r)
+        rows.group[r] = rows_i[r, 0]
+        rows.map[r] = rows_i[r, 1]
+        rows.start[r] = rows_i[r, 2]
+        rows.count[r] = rows_i[r, 3]
+        rows.q[r], rows.t[r] = pose_from_row(rows_f, r)
     ti.loop_config(serialize=serial)
     for g in range(num_groups):
-        q_cand[g], t_cand[g] = pose_from_row(poses, g)
-    reset(num_groups, lm_lambda, q_cur, t_cur, q_cand, t_cand, lam, status, iters, acc_H,
-          acc_b, acc_e, acc_n, best_n, serial)
+        poses.q_cand[g], poses.t_cand[g] = pose_from_row(initial, g)
+    reset(num_groups, lm_lambda, poses, serial)
 
 
 RESULT_COLUMNS = 54  # q (4), t (3), H (36), b (6), error, inliers, iterations, status, hits
 
 
 @ti.kernel
-def download_results(num_groups: ti.i32, q_cur: ti.template(), t_cur: ti.template(),
-                     best_H: ti.template(), best_b: ti.template(), best_e: ti.template(),
-                     best_n: ti.template(), iters: ti.template(), status: ti.template(),
-                     src_pts: ti.template(), num_points: ti.i32, queries: ti.types.ndarray(),
-                     num_queries: ti.i32, vox: ti.template(), res: ti.template(),
-                     buckets: ti.i32, max_probes: ti.i32, out: ti.types.ndarray(),
-                     serial: ti.template(), overlap: ti.template()):
+def download_results(num_groups: ti.i32, poses: ti.template(), pool: ti.template(),
+                     num_points: ti.i32, queries: ti.types.ndarray(), num_queries: ti.i32,
+                     maps: ti.template(), buckets: ti.i32, max_probes: ti.i32,
+                     out: ti.types.ndarray(), serial: ti.template(), overlap: ti.template()):
     """Every group's result as one f32 row (counts stay exact below 2^24), with its overlap
     count: how many of the first `num_points` source points land in an occupied voxel of at
     least one listed map, at the group's pose placed in map k by queries[k] = (map id, R
     row-major, t of the left pose) (list the likeliest map first: a hit ends the search).
     One launch instead of eight field reads and a separate overlap query; `serial` as in
     `step`; without `overlap` the count is 0."""
+    best = poses.best
     ti.loop_config(serialize=serial)
     for g in range(num_groups):
         for a in ti.static(range(4)):
-            out[g, a] = q_cur[g][a]
+            out[g, a] = poses.q_cur[g][a]
         for a in ti.static(range(3)):
-            out[g, 4 + a] = t_cur[g][a]
+            out[g, 4 + a] = poses.t_cur[g][a]
         for a in ti.static(range(6)):
-            out[g, 43 + a] = best_b[g][a]
+            out[g, 43 + a] = best.b[g][a]
             for b in ti.static(range(6)):
-                out[g, 7 + 6 * a + b] = best_H[g][a, b]
-        out[g, 49] = best_e[g]
-        out[g, 50] = ti.cast(best_n[g], ti.f32)
-        out[g, 51] = ti.cast(iters[g], ti.f32)
-        out[g, 52] = ti.cast(status[g], ti.f32)
+                out[g, 7 + 6 * a + b] = best.H[g][a, b]
+        out[g, 49] = best.e[g]
+        out[g, 50] = ti.cast(best.n[g], ti.f32)
+        out[g, 51] = ti.cast(poses.iters[g], ti.f32)
+        out[g, 52] = ti.cast(poses.status[g], ti.f32)
         out[g, 53] = 0.0
     if ti.static(overlap):
         # over (group, point) pairs, so that one pose's count spreads over GPU threads too
         # (lavapipe lost lookups once one thread had made a few thousand)
         ti.loop_config(serialize=serial)
         for g, i in ti.ndrange(num_groups, num_points):
-            x_g = quat_to_mat(q_cur[g]) @ src_pts[i] + t_cur[g]
+            x_g = quat_to_mat(poses.q_cur[g]) @ pool.points[i] + poses.t_cur[g]
             hit = 0
             k = 0
             while k < num_queries and hit == 0:  # the likeliest map first: a hit ends it
@@ -592,7 +590,7 @@ def download_results(num_groups: ti.i32, q_cur: ti.template(), t_cur: ti.templat
                 for a in ti.static(range(3)):
                     for b in ti.static(range(3)):
                         x[a] += queries[k, 1 + 3 * a + b] * x_g[b]
-                if lookup(vox, ti.cast(ti.floor(x / res[m]), ti.i32), m, buckets,
+                if lookup(maps.vox, ti.cast(ti.floor(x / maps.res[m]), ti.i32), m, buckets,
                           max_probes) >= 0:
                     hit = 1
                 k += 1

@@ -27,7 +27,7 @@ match_dist of a surface; ll_mean[i] = the mean per-point log-likelihood of this 
 import taichi as ti
 
 from mcl3d.kernels.se3 import quat_to_mat
-from mcl3d.kernels.tsdf import BLOCK, FREE
+from mcl3d.kernels.tsdf_lookup import BLOCK, FREE
 
 vec3 = ti.math.vec3
 ivec3 = ti.math.ivec3

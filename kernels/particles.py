@@ -114,12 +114,6 @@ def gather(src_pos: ti.template(), src_quat: ti.template(), parent: ti.template(
 
 
 @ti.kernel
-def fill_scalar(x: ti.template(), n: ti.i32, value: ti.f32):
-    for i in range(n):
-        x[i] = value
-
-
-@ti.kernel
 def add_scaled(x: ti.template(), y: ti.template(), n: ti.i32, scale: ti.f32):
     """x += scale * y over the first n entries (re-tempering a likelihood increment)."""
     for i in range(n):

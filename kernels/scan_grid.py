@@ -16,6 +16,10 @@ launches matter because a small scan's math costs less than launching kernels fr
 Few parallel loops too: on the cpu backend each one costs ~70 us of thread-pool hand-offs
 (a 2-core VM, Taichi 1.7.4), so only staging and `plane_rows` run in parallel and the ordered
 passes are serialized loops (`ti.loop_config(serialize=True)`: free).
+
+The kernels take the grid as one `ti.template()` (mcl3d.registration.preprocess.ScanGrid:
+its fields, and the constants `min_neighbors`, `normal_variance` of `plane_rows`) and write
+into a source pool (gicp_state.SourcePool: `points`, and `cov_rows` when `has_cov_rows`).
 """
 
 import taichi as ti
@@ -45,15 +49,14 @@ def cell_of(key: ivec3) -> ti.i32:
 
 
 @ti.func
-def find_brick(b: ivec3, slot_key: ti.template(), slot_brick: ti.template(),
-               mask: ti.u32) -> ti.i32:
+def find_brick(grid: ti.template(), b: ivec3, mask: ti.u32) -> ti.i32:
     """Pool index of brick `b`, or -1 when no point fell in it (the table is never full)."""
     found = -1
     s = voxel_hash(b) & mask
-    while slot_brick[ti.cast(s, ti.i32)] >= 0:
-        k = slot_key[ti.cast(s, ti.i32)]
+    while grid.slot_brick[ti.cast(s, ti.i32)] >= 0:
+        k = grid.slot_key[ti.cast(s, ti.i32)]
         if k[0] == b[0] and k[1] == b[1] and k[2] == b[2]:
-            found = slot_brick[ti.cast(s, ti.i32)]
+            found = grid.slot_brick[ti.cast(s, ti.i32)]
             break
         s = (s + 1) & mask
     return found
@@ -63,14 +66,15 @@ def find_brick(b: ivec3, slot_key: ti.template(), slot_brick: ti.template(),
 def stage_points(points: ti.types.ndarray(), times: ti.types.ndarray(), n: ti.i32,
                  deskew: ti.i32, twist_w: vec3, twist_v: vec3, t_first: ti.f32, t_step: ti.f32,
                  min_range_m: ti.f32, max_range_m: ti.f32, inv_voxel: ti.f32,
-                 knot_R: ti.template(), knot_t: ti.template(), stage_p: ti.template(),
-                 stage_key: ti.template(), stage_ok: ti.template()):
+                 grid: ti.template()):
     """Range crop (and finite check), deskew p' = exp(t twist) p when `deskew`, voxel key.
 
-    exp(t twist) is evaluated exactly at `knot_R.shape[0]` knots t_first + j t_step spanning
+    exp(t twist) is evaluated exactly at `grid.knot_R.shape[0]` knots t_first + j t_step spanning
     the point times and interpolated linearly in between (per point that saves the sines and
     square roots, ~2/3 of the cost; over a 0.1 s sweep at 1 rad/s two knots differ by 2 mrad
     and the interpolation error is ~5e-7 rad)."""
+    knot_R = ti.static(grid.knot_R)
+    knot_t = ti.static(grid.knot_t)
     num_knots = knot_R.shape[0]
     if deskew:
         for j in range(num_knots):
@@ -89,150 +93,144 @@ def stage_points(points: ti.types.ndarray(), times: ti.types.ndarray(), n: ti.i3
             a = x - j
             p = ((1.0 - a) * knot_R[j] + a * knot_R[j + 1]) @ p \
                 + (1.0 - a) * knot_t[j] + a * knot_t[j + 1]
-        stage_p[i] = p
-        stage_key[i] = ti.cast(ti.floor(p * inv_voxel), ti.i32)
-        stage_ok[i] = ti.select(ok, 1, 0)
+        grid.stage_p[i] = p
+        grid.stage_key[i] = ti.cast(ti.floor(p * inv_voxel), ti.i32)
+        grid.stage_ok[i] = ti.select(ok, 1, 0)
 
 
 @ti.func
-def insert_points(n: ti.i32, first_chunk: ti.i32, voxel_m: ti.f32, stage_p: ti.template(),
-                  stage_key: ti.template(),
-                  stage_ok: ti.template(), slot_key: ti.template(), slot_brick: ti.template(),
-                  brick_slot: ti.template(), cells: ti.template(), occupancy: ti.template(),
-                  voxel_key: ti.template(), voxel_sum: ti.template(),
-                  voxel_count: ti.template(), counts: ti.template(), brick_head: ti.template(),
-                  brick_tail: ti.template(), voxel_next: ti.template()):
+def insert_points(n: ti.i32, first_chunk: ti.i32, voxel_m: ti.f32, grid: ti.template()):
     """Add the staged points to their voxels in one ordered pass (a new voxel gets the next
     output index; sums are offsets from the voxel centre so f32 stays precise far out).
     counts[None] = (voxels, bricks, overflow): overflow 1 when a voxel or brick did not fit,
     then the scan must take another path. Where consecutive points share a brick (scan order
-    of some sensors) they skip the hash lookup. Each brick's voxels form a list in voxel order
-    (brick_head, voxel_next; brick_tail appends) for the wider search of gather_bricks."""
+    of some sensors) they skip the hash lookup."""
     num_voxels = 0
     num_bricks = 0
     overflow = 0
     if not first_chunk:
-        num_voxels = counts[None][0]
-        num_bricks = counts[None][1]
-        overflow = counts[None][2]
-    max_voxels = voxel_key.shape[0]
-    max_bricks = brick_slot.shape[0]
-    mask = ti.cast(slot_key.shape[0] - 1, ti.u32)
+        num_voxels = grid.counts[None][0]
+        num_bricks = grid.counts[None][1]
+        overflow = grid.counts[None][2]
     last_b = ivec3(-(1 << 30))
     last_brick = -1
     # in order; a serialized top-level loop, not one inside a `for _ in range(1)` task: that
     # costs a parallel launch, and Vulkan (lavapipe) loses counters such as num_voxels there
     ti.loop_config(serialize=True)
     for i in range(n):
-        if stage_ok[i] and overflow == 0:
-            key = stage_key[i]
+        if grid.stage_ok[i] and overflow == 0:
+            key = grid.stage_key[i]
             b = brick_of(key)
             brick = last_brick
             if b[0] != last_b[0] or b[1] != last_b[1] or b[2] != last_b[2]:
-                s = voxel_hash(b) & mask
-                brick = -1
-                while brick == -1:
-                    si = ti.cast(s, ti.i32)
-                    if slot_brick[si] < 0:
-                        if num_bricks < max_bricks:
-                            brick = num_bricks
-                            num_bricks += 1
-                            slot_brick[si] = brick
-                            slot_key[si] = b
-                            brick_slot[brick] = si
-                            occupancy[2 * brick] = ti.u32(0)
-                            occupancy[2 * brick + 1] = ti.u32(0)
-                            brick_head[brick] = -1
-                        else:
-                            brick = -2
-                    elif slot_key[si][0] == b[0] and slot_key[si][1] == b[1] \
-                            and slot_key[si][2] == b[2]:
-                        brick = slot_brick[si]
-                    s = (s + 1) & mask
+                brick = brick_for(grid, b, num_bricks)
                 last_b = b
                 last_brick = brick
             if brick < 0:
                 overflow = 1
             else:
-                local = cell_of(key)
-                cell = brick * BRICK_CELLS + local
-                word = 2 * brick + (local >> 5)
-                bit = ti.u32(1) << ti.cast(local & 31, ti.u32)
-                v = -1
-                if occupancy[word] & bit:  # a cell is read only once its bit is set
-                    v = cells[cell]
+                v = voxel_for(grid, brick, key, num_voxels)
+                if v < 0:
+                    overflow = 1
                 else:
-                    if num_voxels < max_voxels:
-                        v = num_voxels
-                        num_voxels += 1
-                        cells[cell] = v
-                        occupancy[word] |= bit
-                        voxel_key[v] = key
-                        if brick_head[brick] < 0:
-                            brick_head[brick] = v
-                        else:
-                            voxel_next[brick_tail[brick]] = v
-                        brick_tail[brick] = v
-                        voxel_next[v] = -1
-                        voxel_sum[v] = vec3(0.0)
-                        voxel_count[v] = 0
-                    else:
-                        overflow = 1
-                if v >= 0:
                     centre = (ti.cast(key, ti.f32) + 0.5) * voxel_m
-                    voxel_sum[v] += stage_p[i] - centre
-                    voxel_count[v] += 1
-    counts[None] = ivec3(num_voxels, num_bricks, overflow)
+                    grid.voxel_sum[v] += grid.stage_p[i] - centre
+                    grid.voxel_count[v] += 1
+    grid.counts[None] = ivec3(num_voxels, num_bricks, overflow)
 
 
 @ti.func
-def finalize_voxels(voxel_m: ti.f32, counts: ti.template(), voxel_key: ti.template(),
-                    voxel_sum: ti.template(), voxel_count: ti.template(), out_pts: ti.template()):
+def brick_for(grid: ti.template(), b: ivec3, num_bricks: ti.template()) -> ti.i32:
+    """Pool index of brick `b`, added (the next index: `num_bricks` grows) when no point fell
+    in it yet; -2 when the pool is full."""
+    mask = ti.cast(grid.slot_key.shape[0] - 1, ti.u32)
+    s = voxel_hash(b) & mask
+    brick = -1
+    while brick == -1:
+        si = ti.cast(s, ti.i32)
+        if grid.slot_brick[si] < 0:
+            if num_bricks < grid.brick_slot.shape[0]:
+                brick = num_bricks
+                num_bricks += 1
+                grid.slot_brick[si] = brick
+                grid.slot_key[si] = b
+                grid.brick_slot[brick] = si
+                grid.occupancy[2 * brick] = ti.u32(0)
+                grid.occupancy[2 * brick + 1] = ti.u32(0)
+                grid.brick_head[brick] = -1
+            else:
+                brick = -2
+        elif grid.slot_key[si][0] == b[0] and grid.slot_key[si][1] == b[1] \
+                and grid.slot_key[si][2] == b[2]:
+            brick = grid.slot_brick[si]
+        s = (s + 1) & mask
+    return brick
+
+
+@ti.func
+def voxel_for(grid: ti.template(), brick: ti.i32, key: ivec3, num_voxels: ti.template()) -> ti.i32:
+    """Output index of voxel `key` of `brick`, added (the next index: `num_voxels` grows, its
+    sums zeroed) when its cell is empty; -1 when the voxels are full. Each brick's voxels form
+    a list in voxel order (brick_head, voxel_next; brick_tail appends) for the wider search of
+    gather_bricks."""
+    local = cell_of(key)
+    cell = brick * BRICK_CELLS + local
+    word = 2 * brick + (local >> 5)
+    bit = ti.u32(1) << ti.cast(local & 31, ti.u32)
+    v = -1
+    if grid.occupancy[word] & bit:  # a cell is read only once its bit is set
+        v = grid.cells[cell]
+    elif num_voxels < grid.voxel_key.shape[0]:
+        v = num_voxels
+        num_voxels += 1
+        grid.cells[cell] = v
+        grid.occupancy[word] |= bit
+        grid.voxel_key[v] = key
+        if grid.brick_head[brick] < 0:
+            grid.brick_head[brick] = v
+        else:
+            grid.voxel_next[grid.brick_tail[brick]] = v
+        grid.brick_tail[brick] = v
+        grid.voxel_next[v] = -1
+        grid.voxel_sum[v] = vec3(0.0)
+        grid.voxel_count[v] = 0
+    return v
+
+
+@ti.func
+def finalize_voxels(voxel_m: ti.f32, grid: ti.template(), out_pts: ti.template()):
     """Each voxel's point: the mean of the points that fell in it (none after an overflow)."""
-    for v in range(counts[None][0]):
-        if counts[None][2] == 0 and v < out_pts.shape[0]:
-            centre = (ti.cast(voxel_key[v], ti.f32) + 0.5) * voxel_m
-            out_pts[v] = centre + voxel_sum[v] / ti.cast(voxel_count[v], ti.f32)
+    for v in range(grid.counts[None][0]):
+        if grid.counts[None][2] == 0 and v < out_pts.shape[0]:
+            centre = (ti.cast(grid.voxel_key[v], ti.f32) + 0.5) * voxel_m
+            out_pts[v] = centre + grid.voxel_sum[v] / ti.cast(grid.voxel_count[v], ti.f32)
 
 
 @ti.kernel
 def downsample(points: ti.types.ndarray(), times: ti.types.ndarray(), n: ti.i32,
                first_chunk: ti.i32, last_chunk: ti.i32, deskew: ti.i32, w_x: ti.f32, w_y: ti.f32,
                w_z: ti.f32, v_x: ti.f32, v_y: ti.f32, v_z: ti.f32, t_first: ti.f32,
-               t_step: ti.f32, min_range_m: ti.f32,
-               max_range_m: ti.f32, voxel_m: ti.f32, knot_R: ti.template(),
-               knot_t: ti.template(), stage_p: ti.template(), stage_key: ti.template(),
-               stage_ok: ti.template(), slot_key: ti.template(), slot_brick: ti.template(),
-               brick_slot: ti.template(), cells: ti.template(), occupancy: ti.template(),
-               voxel_key: ti.template(), voxel_sum: ti.template(),
-               voxel_count: ti.template(), counts: ti.template(),
-               out_pts: ti.template(), covariances: ti.template(), k: ti.i32,
-               min_neighbors: ti.i32, normal_variance: ti.f32, brick_head: ti.template(),
-               brick_tail: ti.template(), voxel_next: ti.template(),
-               out_plane: ti.template()) -> ti.i32:
+               t_step: ti.f32, min_range_m: ti.f32, max_range_m: ti.f32, voxel_m: ti.f32,
+               k: ti.i32, grid: ti.template(), out: ti.template()) -> ti.i32:
     """One chunk of a scan's points through the grid in one launch: free the previous scan's
-    bricks (first chunk), stage, insert, and after the last chunk the voxel means, then (with
-    `covariances`) their `plane_rows` into `out_plane`. Returns the voxel count, or -1 when a
-    voxel or brick did not fit (or, after the last chunk, the points do not fit `out_pts`).
+    bricks (first chunk), stage, insert, and after the last chunk the voxel means into
+    `out.points`, then (when the pool has `cov_rows`) their `plane_rows` (k neighbours) into
+    `out.cov_rows`. Returns the voxel count, or -1 when a voxel or brick did not fit (or,
+    after the last chunk, the points do not fit the pool).
     The twist (w, v) comes as six scalars: a vector argument costs ~20 us more to launch."""
     if first_chunk:
-        clear_grid(counts, brick_slot, slot_brick)
+        clear_grid(grid)
     stage_points(points, times, n, deskew, vec3(w_x, w_y, w_z), vec3(v_x, v_y, v_z), t_first,
-                 t_step, min_range_m, max_range_m, 1.0 / voxel_m, knot_R, knot_t, stage_p,
-                 stage_key, stage_ok)
-    insert_points(n, first_chunk, voxel_m, stage_p, stage_key, stage_ok, slot_key, slot_brick,
-                  brick_slot, cells, occupancy, voxel_key, voxel_sum, voxel_count, counts,
-                  brick_head, brick_tail, voxel_next)
+                 t_step, min_range_m, max_range_m, 1.0 / voxel_m, grid)
+    insert_points(n, first_chunk, voxel_m, grid)
     if last_chunk:
-        finalize_voxels(voxel_m, counts, voxel_key, voxel_sum, voxel_count, out_pts)
-    c = counts[None]
-    fits = c[2] == 0 and (not last_chunk or c[0] <= out_pts.shape[0])
-    if ti.static(covariances):
+        finalize_voxels(voxel_m, grid, out.points)
+    c = grid.counts[None]
+    fits = c[2] == 0 and (not last_chunk or c[0] <= out.points.shape[0])
+    if ti.static(out.has_cov_rows):
         # a top-level loop over 0 points when there is nothing to do: a loop under an `if`
         # would run on one thread
-        plane_rows(ti.select(fits and last_chunk, c[0], 0), k, min_neighbors, normal_variance,
-                   voxel_key, out_pts, slot_key, slot_brick, cells, occupancy, brick_head,
-                   voxel_next, out_plane)
+        plane_rows(ti.select(fits and last_chunk, c[0], 0), k, grid, out.points, out.cov_rows)
     return ti.select(fits, c[0], -1)
 
 
@@ -263,8 +261,7 @@ def box_bits(lo: ivec3, hi: ivec3, word: ti.i32) -> ti.u32:
 
 
 @ti.func
-def gather(p: vec3, key: ivec3, k: ti.i32, pts: ti.template(), slot_key: ti.template(),
-           slot_brick: ti.template(), cells: ti.template(), occupancy: ti.template()):
+def gather(p: vec3, key: ivec3, k: ti.i32, pts: ti.template(), grid: ti.template()):
     """The k nearest points to p among the 5x5x5 voxels around its voxel `key`, unsorted
     (keep_nearest). Returns (how many, their indices).
 
@@ -273,12 +270,11 @@ def gather(p: vec3, key: ivec3, k: ti.i32, pts: ti.template(), slot_key: ti.temp
     a box around a surface point are empty, and skipping them is most of the search. The
     inner 3x3x3 voxels go first: they hold most of the nearest, so that few of the outer ones
     replace a kept point (a replacement rescans the k kept)."""
-    mask = ti.cast(slot_key.shape[0] - 1, ti.u32)
+    mask = ti.cast(grid.slot_key.shape[0] - 1, ti.u32)
     lo = brick_of(key - SEARCH)
     bricks = ti.Vector.zero(ti.i32, 8)
     for c in range(8):
-        bricks[c] = find_brick(lo + ivec3(c >> 2, (c >> 1) & 1, c & 1), slot_key, slot_brick,
-                               mask)
+        bricks[c] = find_brick(grid, lo + ivec3(c >> 2, (c >> 1) & 1, c & 1), mask)
     dist = ti.Vector.zero(ti.f32, MAX_K)
     nbr = ti.Vector.zero(ti.i32, MAX_K)
     found = 0
@@ -294,11 +290,11 @@ def gather(p: vec3, key: ivec3, k: ti.i32, pts: ti.template(), slot_key: ti.temp
                     bits = inner
                     if ring == 1:
                         bits = box_bits(key - SEARCH - base, key + SEARCH - base, word) & ~inner
-                    bits &= occupancy[2 * brick + word]
+                    bits &= grid.occupancy[2 * brick + word]
                     while bits != 0:
                         low = bits & (~bits + ti.u32(1))
                         bits ^= low
-                        u = cells[brick * BRICK_CELLS + 32 * word + bit_index(low)]
+                        u = grid.cells[brick * BRICK_CELLS + 32 * word + bit_index(low)]
                         keep_nearest(u, (pts[u] - p).norm_sqr(), k, found, far, far_d2, dist,
                                      nbr)
     return found, nbr
@@ -331,11 +327,9 @@ def keep_nearest(u: ti.i32, d2: ti.f32, k: ti.i32, found: ti.template(), far: ti
 
 
 @ti.func
-def gather_bricks(p: vec3, key: ivec3, k: ti.i32, pts: ti.template(), slot_key: ti.template(),
-                  slot_brick: ti.template(), brick_head: ti.template(),
-                  voxel_next: ti.template()):
+def gather_bricks(p: vec3, key: ivec3, k: ti.i32, pts: ti.template(), grid: ti.template()):
     """The k nearest points to p in the 3x3x3 bricks around key's brick (see gather)."""
-    mask = ti.cast(slot_key.shape[0] - 1, ti.u32)
+    mask = ti.cast(grid.slot_key.shape[0] - 1, ti.u32)
     dist = ti.Vector.zero(ti.f32, MAX_K)
     nbr = ti.Vector.zero(ti.i32, MAX_K)
     found = 0
@@ -345,36 +339,36 @@ def gather_bricks(p: vec3, key: ivec3, k: ti.i32, pts: ti.template(), slot_key: 
     for bx in range(c[0] - 1, c[0] + 2):
         for by in range(c[1] - 1, c[1] + 2):
             for bz in range(c[2] - 1, c[2] + 2):
-                brick = find_brick(ivec3(bx, by, bz), slot_key, slot_brick, mask)
+                brick = find_brick(grid, ivec3(bx, by, bz), mask)
                 if brick >= 0:
-                    u = brick_head[brick]
+                    u = grid.brick_head[brick]
                     while u >= 0:
                         keep_nearest(u, (pts[u] - p).norm_sqr(), k, found, far, far_d2, dist, nbr)
-                        u = voxel_next[u]
+                        u = grid.voxel_next[u]
     return found, nbr
 
 
 @ti.func
-def plane_rows(num_voxels: ti.i32, k: ti.i32, min_neighbors: ti.i32, normal_variance: ti.f32,
-               voxel_key: ti.template(), pts: ti.template(), slot_key: ti.template(),
-               slot_brick: ti.template(), cells: ti.template(), occupancy: ti.template(),
-               brick_head: ti.template(), voxel_next: ti.template(), out_plane: ti.template()):
+def plane_rows(num_voxels: ti.i32, k: ti.i32, grid: ti.template(), pts: ti.template(),
+               out_plane: ti.template()):
     """Covariance of each point's k nearest points (itself included), plane-regularized:
     C = I - (1 - normal_variance) n nᵀ with n the normal, stored as (n, α=1,
     β=normal_variance-1, 0) (batch_gicp.plane_form's rows); the identity (α=1, β=0) with
-    fewer than `min_neighbors` points or points along a scan line (covariance.is_scan_line).
+    fewer than `min_neighbors` points or points along a scan line (covariance.is_scan_line);
+    both constants of the grid.
 
     The k nearest within the 5x5x5 voxels around the point (exact when the k-th nearest lies
     within 2 voxels: nothing outside is closer); a point with fewer than `min_neighbors` there
     (a sparse surface) takes the k nearest in the 3x3x3 bricks (12x12x12 voxels) around its
     brick instead, so that it still gets a plane when one is within reach."""
+    min_neighbors = grid.min_neighbors
+    normal_variance = grid.normal_variance
     for v in range(num_voxels):
-        key = voxel_key[v]
+        key = grid.voxel_key[v]
         p = pts[v]
-        found, nbr = gather(p, key, k, pts, slot_key, slot_brick, cells, occupancy)
+        found, nbr = gather(p, key, k, pts, grid)
         if found < min_neighbors:
-            found, nbr = gather_bricks(p, key, k, pts, slot_key, slot_brick, brick_head,
-                                       voxel_next)
+            found, nbr = gather_bricks(p, key, k, pts, grid)
         row = ti.Vector([1.0, 0.0, 0.0, 1.0, 0.0, 0.0], ti.f32)
         if found >= min_neighbors:
             mean = vec3(0.0)
@@ -393,18 +387,17 @@ def plane_rows(num_voxels: ti.i32, k: ti.i32, min_neighbors: ti.i32, normal_vari
 
 
 @ti.func
-def clear_grid(counts: ti.template(), brick_slot: ti.template(), slot_brick: ti.template()):
+def clear_grid(grid: ti.template()):
     """Free the hash slots of the bricks in use (their occupancy is reset when reused)."""
-    for b in range(counts[None][1]):
-        slot_brick[brick_slot[b]] = -1
+    for b in range(grid.counts[None][1]):
+        grid.slot_brick[grid.brick_slot[b]] = -1
 
 
 @ti.kernel
-def download_rows(n: ti.i32, pts: ti.template(), rows: ti.template(),
-                  out: ti.types.ndarray()):
-    """Points and their covariance rows side by side, (x, y, z, r0..r5) per row."""
+def download_rows(n: ti.i32, pool: ti.template(), out: ti.types.ndarray()):
+    """A source pool's points and covariance rows side by side, (x, y, z, r0..r5) per row."""
     for i in range(n):
         for a in ti.static(range(3)):
-            out[i, a] = pts[i][a]
+            out[i, a] = pool.points[i][a]
         for a in ti.static(range(6)):
-            out[i, 3 + a] = rows[i][a]
+            out[i, 3 + a] = pool.cov_rows[i][a]

@@ -86,11 +86,6 @@ def quat_slerp(a: vec4, b: vec4, alpha: ti.f32) -> vec4:
 
 
 @ti.func
-def transform_point(q: vec4, t: vec3, p: vec3) -> vec3:
-    return quat_rotate(q, p) + t
-
-
-@ti.func
 def pose_compose(q_ab: vec4, t_ab: vec3, q_bc: vec4, t_bc: vec3):
     """T_ac = T_ab T_bc, returned as (q_ac, t_ac)."""
     return quat_normalize(quat_mul(q_ab, q_bc)), quat_rotate(q_ab, t_bc) + t_ab

@@ -4,12 +4,6 @@ import taichi as ti
 
 
 @ti.kernel
-def scalar_rows(src: ti.types.ndarray(), n: ti.i32, dst: ti.template()):
-    for i in range(n):
-        dst[i] = src[i]
-
-
-@ti.kernel
 def vector_rows(src: ti.types.ndarray(), n: ti.i32, dst: ti.template()):
     for i in range(n):
         for a in ti.static(range(dst.n)):

@@ -13,11 +13,17 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import open3d as o3d
+import taichi as ti
 from pydantic import Field, model_validator
+from scipy.ndimage import maximum_filter1d
+from scipy.spatial import cKDTree
 
 from mcl3d.core import runtime
 from mcl3d.core.config import Section
 from mcl3d.core.errors import MapError, PointCloudError
+from mcl3d.core.geometry import rot_to_quat
+from mcl3d.kernels import tsdf_fusion
 from mcl3d.maps.tsdf import BLOCK, CHUNK_CELLS, MapGeometry, TsdfMap
 
 TRUNCATION_VOXELS = 4
@@ -87,8 +93,8 @@ def new_map(geometry: MapGeometry, config: BuildConfig, needed: int = 0) -> Tsdf
     if capacity > config.max_capacity_blocks:
         raise MapError(
             f"the map needs {needed or capacity} blocks, more than max_capacity_blocks "
-            f"{config.max_capacity_blocks}; raise it (--capacity-blocks) or use a larger "
-            f"voxel size")
+            f"{config.max_capacity_blocks}; raise it or use a larger voxel size",
+            setting="max_capacity_blocks")
     tsdf = TsdfMap(geometry, capacity, frame_id=config.frame_id)
     tsdf.as_sums = True
     return tsdf
@@ -100,8 +106,8 @@ def grown_capacity(tsdf: TsdfMap, config: BuildConfig) -> int:
     if needed > config.max_capacity_blocks:
         raise MapError(
             f"the map needs {needed} blocks but max_capacity_blocks is "
-            f"{config.max_capacity_blocks}; raise it (--capacity-blocks {needed}) or use a "
-            f"larger voxel size")
+            f"{config.max_capacity_blocks}; raise it to at least {needed} or use a larger "
+            f"voxel size", setting="max_capacity_blocks")
     return min(int(needed * 1.25) + 16, config.max_capacity_blocks)
 
 
@@ -114,14 +120,10 @@ def estimate_normals(points: np.ndarray, k: int, viewpoints: np.ndarray | None =
     flipped so that most near-horizontal surfaces face up (floors and ground dominate the
     maps of ground robots).
     """
-    import open3d as o3d
-
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(np.float64)))
     pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(k))
     normals = np.asarray(pcd.normals)
     if viewpoints is not None and len(viewpoints):
-        from scipy.spatial import cKDTree
-
         _, idx = cKDTree(viewpoints).query(points, k=1, workers=-1)
         to_view = viewpoints[idx] - points
         flip = np.einsum("ij,ij->i", normals, to_view) < 0
@@ -143,7 +145,7 @@ class PreparedScan:
     points_l: np.ndarray  # (n, 3) f32, lidar frame
     normals_l: np.ndarray  # (n, 3) f32 (zeros when fusing without normals)
     alpha: np.ndarray  # (n,) f32 in [0, 1]: where between the two poses each point was taken
-    args: tuple  # poses, ranges, ray spacing, behind_m, use_normals (see kernels.tsdf)
+    args: tuple  # poses, ranges, ray spacing, behind_m, use_normals (see tsdf_fusion)
 
     def chunks(self):
         """Slices of at most CHUNK_CELLS points, one kernel launch each."""
@@ -167,13 +169,11 @@ class ScanFuser:
         self.config = config
         self.n_scans = 0
         self.n_points = 0
-        self._rays = None  # (ray_p, ray_n): vec4 per point, see kernels.tsdf.scan_allocate
+        self._rays = None  # (ray_p, ray_n): vec4 per point, see tsdf_fusion.scan_allocate
 
     def _ray_buffers(self, n: int):
         """Device arrays for the rays of n points: allocated once, regrown (to a power of
         two) only by a larger scan."""
-        import taichi as ti
-
         if self._rays is None or self._rays[0].shape[0] < n:
             size = min(max(1 << max(n - 1, 1).bit_length(), 1024), CHUNK_CELLS)
             self._rays = (ti.ndarray(ti.math.vec4, shape=size),
@@ -200,10 +200,6 @@ class ScanFuser:
                 T_end: np.ndarray | None = None, alpha: np.ndarray | None = None,
                 normals_l: np.ndarray | None = None) -> PreparedScan | None:
         """The scan as the kernels take it (None for an empty scan); arguments as `fuse`."""
-        import taichi as ti
-
-        from mcl3d.core.geometry import rot_to_quat
-
         pts = np.ascontiguousarray(points_l, dtype=np.float32).reshape(-1, 3)
         n = len(pts)
         if n == 0:
@@ -230,8 +226,6 @@ class ScanFuser:
 
     def allocate(self, scan: PreparedScan) -> None:
         """Pass 1: allocate (and initialize) the blocks the scan's bands reach."""
-        from mcl3d.kernels import tsdf as k
-
         m = self.tsdf
         n = len(scan.points_l)
         before = m.requested_blocks
@@ -239,23 +233,21 @@ class ScanFuser:
         # runs only serve to spread points over cpu threads; a GPU thread takes one point
         # (runs of several lost points on Mesa's lavapipe)
         runs = run_length() if threads > 1 else 1
-        k.scan_allocate(m, scan.points_l, scan.normals_l, scan.alpha, n, *scan.args,
-                        *self._ray_buffers(n), runs, threads)
+        tsdf_fusion.scan_allocate(m, scan.points_l, scan.normals_l, scan.alpha, n, *scan.args,
+                                  *self._ray_buffers(n), runs, threads)
         m.init_new_blocks(before, m.requested_blocks)
 
     def update(self, scan: PreparedScan, carve: bool) -> None:
         """Pass 2: the truncation bands, and free-space carving when `carve`; the scan must
         be the one `allocate` took last (its rays are reused)."""
-        from mcl3d.kernels import tsdf as k
-
         _q0, t0, _q1, t1, _lo, _hi, spacing, behind, _normals = scan.args
-        k.scan_fuse(self.tsdf, *self._rays, scan.alpha, len(scan.points_l), t0, t1, spacing,
-                    behind, carve, self.config.sigma_w_m, run_length(),
-                    runtime.loop_threads())
+        tsdf_fusion.scan_fuse(self.tsdf, *self._rays, scan.alpha, len(scan.points_l), t0, t1,
+                              spacing, behind, carve, self.config.sigma_w_m, run_length(),
+                              runtime.loop_threads())
 
 
 def run_length() -> int:
-    """Consecutive points one thread fuses (kernels.tsdf.scan_fuse): long runs on cpu, whose
+    """Consecutive points one thread fuses (tsdf_fusion.scan_fuse): long runs on cpu, whose
     few threads gain most from merged voxel updates, short ones on GPUs, which need
     thousands of threads."""
     info = runtime.current()
@@ -290,8 +282,6 @@ def ray_spacing_rad(points_l: np.ndarray) -> float:
 # ---------------------------------------------------------------- free-space blocks
 def _candidate_cells(tsdf: TsdfMap, margin_m: float) -> np.ndarray:
     """Unallocated cells within margin of an allocated block, as (k, 3) coordinates."""
-    from scipy.ndimage import maximum_filter1d
-
     coarse = tsdf.coarse_numpy()
     near = (coarse >= 0).astype(np.uint8)
     r = int(np.ceil(margin_m / tsdf.geometry.block_size_m))
@@ -336,10 +326,6 @@ def build_from_points(points: np.ndarray, config: BuildConfig, *,
     truncation (weighted by distance along the plane); then blocks farther than the
     truncation from every point, on the normals' side, within free_margin_m, become FREE.
     """
-    from scipy.spatial import cKDTree
-
-    from mcl3d.kernels import tsdf as k
-
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     pts = pts[np.isfinite(pts).all(axis=1)]
     if len(pts) < config.normal_neighbors:
@@ -360,14 +346,14 @@ def build_from_points(points: np.ndarray, config: BuildConfig, *,
     tsdf = new_map(geometry, config, _cube_blocks(geometry, pts, radius))
     for s in range(0, len(pts32), CHUNK_CELLS):
         e = min(len(pts32), s + CHUNK_CELLS)
-        k.points_allocate(tsdf, pts32[s:e], e - s, radius)
+        tsdf_fusion.points_allocate(tsdf, pts32[s:e], e - s, radius)
     tsdf.check_capacity()
     tsdf.init_new_blocks(0, tsdf.n_blocks)
     per_launch = max(1, (4 << 20) // (2 * radius + 1) ** 3)
     for s in range(0, len(pts32), per_launch):
         e = min(len(pts32), s + per_launch)
-        k.points_fuse(tsdf, pts32[s:e], nrm32[s:e], e - s, radius, config.sigma_w_m,
-                      min(config.behind_m, trunc))
+        tsdf_fusion.points_fuse(tsdf, pts32[s:e], nrm32[s:e], e - s, radius, config.sigma_w_m,
+                                min(config.behind_m, trunc))
     tsdf.finalize()
     cells = _candidate_cells(tsdf, config.free_margin_m)
     if len(cells):
@@ -382,8 +368,6 @@ def build_from_points(points: np.ndarray, config: BuildConfig, *,
 
 # -------------------------------------------------------------------------- meshes
 def _mesh_scene(vertices: np.ndarray, triangles: np.ndarray):
-    import open3d as o3d
-
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(vertices, dtype=np.float32)),
                         o3d.core.Tensor(np.ascontiguousarray(triangles, dtype=np.uint32)))
@@ -426,8 +410,6 @@ class MeshDistance:
         self.edge_normals = edge_n
 
     def signed_distance(self, query: np.ndarray, sign: str = "normals") -> np.ndarray:
-        import open3d as o3d
-
         out = np.empty(len(query), np.float32)
         step = 1 << 20
         for s in range(0, len(query), step):

@@ -5,6 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import open3d as o3d
+import open3d.core as o3c
 
 from mcl3d.core.errors import InputError, MapError
 from mcl3d.core.outputs import atomic_path
@@ -29,9 +31,6 @@ def level_set_mesh(geometry: MapGeometry, data: BlockData, min_weight: float = 1
 
     Returns an open3d.t.geometry.TriangleMesh in the map frame.
     """
-    import open3d as o3d
-    import open3d.core as o3c
-
     n = len(data.coords)
     if n == 0:
         raise MapError("the map has no allocated blocks: there is no surface to export")
@@ -63,8 +62,6 @@ def level_set_mesh(geometry: MapGeometry, data: BlockData, min_weight: float = 1
 
 def write_mesh(path: Path, geometry: MapGeometry, data: BlockData) -> int:
     """Write the zero level set to a mesh file atomically; returns the triangle count."""
-    import open3d as o3d
-
     path = Path(path)
     if path.suffix.lower() not in MESH_SUFFIXES:
         raise InputError(f"{path}: unknown mesh type; use one of {', '.join(MESH_SUFFIXES)}")
@@ -77,8 +74,6 @@ def write_mesh(path: Path, geometry: MapGeometry, data: BlockData) -> int:
 
 def write_points(path: Path, geometry: MapGeometry, data: BlockData) -> int:
     """Write surface voxel centres as a point cloud atomically; returns the point count."""
-    import open3d as o3d
-
     path = Path(path)
     if path.suffix.lower() not in POINT_SUFFIXES:
         raise InputError(f"{path}: unknown point-cloud type; use one of "

@@ -1,7 +1,7 @@
 """The two-level TSDF container: a dense coarse grid of block ids + a pool of 8³ blocks.
 
 The container owns the Taichi fields (allocated once, from the capacity given) and the
-map's geometry; the kernels that read and write them live in mcl3d.kernels.tsdf and take
+map's geometry; the kernels that read and write them live in mcl3d.kernels.tsdf_* and take
 the container as a template argument, so lookups compile to plain field reads on every
 backend. Geometry (voxel size, truncation, origin, dims) is fixed at construction.
 """
@@ -12,10 +12,13 @@ import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
+import taichi as ti
 
+from mcl3d.core import runtime
 from mcl3d.core.errors import ConfigError, MapError
+from mcl3d.kernels import tsdf_blocks, tsdf_fusion
+from mcl3d.kernels.tsdf_lookup import BLOCK, FREE, UNKNOWN
 
-BLOCK = 8
 VOXELS_PER_BLOCK = BLOCK**3
 CHUNK_BLOCKS = 8192  # blocks per launch: 8192 * 512 = 4M iterations, under Vulkan's 8M limit
 CHUNK_CELLS = 4 << 20  # coarse cells per launch and points per launch
@@ -74,15 +77,10 @@ class MapGeometry:
                            tuple(float(x) for x in origin), tuple(int(x) for x in dims))
 
 
-def _ti():
-    import taichi as ti
-
-    from mcl3d.core import runtime
-
+def _require_runtime() -> None:
     if runtime.current() is None:
         raise MapError("the Taichi runtime is not started; "
                        "call mcl3d.core.runtime.init(backend) first")
-    return ti
 
 
 @dataclass
@@ -105,7 +103,8 @@ class BlockData:
 
 
 def _data_oriented(cls):
-    """ti.data_oriented without importing taichi at module import (keeps the CLI fast).
+    """ti.data_oriented without its `__getattribute__` wrapper, which serves kernels defined
+    as methods (this class has none) and costs a Python call on every attribute read.
 
     Taichi keys template-kernel caches of data-oriented objects by weak reference, so a
     map's compiled kernels die with it and a new map never reuses stale constants.
@@ -124,7 +123,7 @@ class TsdfMap:
 
     def __init__(self, geometry: MapGeometry, capacity_blocks: int, *, f16: bool = False,
                  writable: bool = True, frame_id: str = "map"):
-        ti = _ti()
+        _require_runtime()
         if capacity_blocks < 1:
             raise ConfigError(f"map capacity must be >= 1 block, got {capacity_blocks}")
         self.geometry = geometry
@@ -166,16 +165,14 @@ class TsdfMap:
     # ------------------------------------------------------------------ bookkeeping
     def clear(self) -> None:
         """Every cell unknown, no block allocated, every pool slot zero again."""
-        from mcl3d.kernels import tsdf as k
-
         n = self.geometry.n_cells
         for start in range(0, n, CHUNK_CELLS):
-            k.fill_coarse(self, start, min(CHUNK_CELLS, n - start), k.UNKNOWN)
+            tsdf_blocks.fill_coarse(self, start, min(CHUNK_CELLS, n - start), UNKNOWN)
         used = max(self._used_slots, self.n_blocks)
         for start in range(0, used, CHUNK_BLOCKS):
-            k.zero_blocks(self, start, min(CHUNK_BLOCKS, used - start))
+            tsdf_blocks.zero_blocks(self, start, min(CHUNK_BLOCKS, used - start))
         self._used_slots = 0
-        k.reset_count(self)
+        tsdf_blocks.reset_count(self)
 
     def destroy(self) -> None:
         """Free the device memory now (the object is unusable afterwards)."""
@@ -200,17 +197,8 @@ class TsdfMap:
         if self.overflowed:
             raise MapError(
                 f"the map needs {self.requested_blocks} blocks but its capacity is "
-                f"{self.capacity}; raise the capacity (--capacity-blocks "
-                f"{int(self.requested_blocks * 1.1) + 1}) or use a larger voxel size")
-
-    def bytes_per_block(self) -> int:
-        per_voxel = 2 * (2 if self.f16 else 4) + (4 if self.writable else 0)
-        return VOXELS_PER_BLOCK * per_voxel + 4 * 4  # + coordinate and free flag
-
-    def memory_bytes(self, blocks: int | None = None) -> int:
-        """Device memory: the coarse grid (+ allocation flags) and the pool."""
-        blocks = self.capacity if blocks is None else blocks
-        return self.geometry.n_cells * 8 + blocks * self.bytes_per_block()
+                f"{self.capacity}; allow at least {int(self.requested_blocks * 1.1) + 1} "
+                f"blocks or use a larger voxel size", setting="max_capacity_blocks")
 
     def init_new_blocks(self, start: int, end: int) -> None:
         """Initialize pool slots [start, end) after an allocation launch.
@@ -219,22 +207,19 @@ class TsdfMap:
         (Taichi zero-fills fields; a FREE block's mark is set by allocate_block), so only
         reused slots (after `clear`) need the init pass.
         """
-        from mcl3d.kernels import tsdf as k
-
         end = min(end, self.capacity)
         stop = min(end, self._used_slots) if self.as_sums else end
         for s in range(start, stop, CHUNK_BLOCKS):
-            k.init_blocks(self, s, min(CHUNK_BLOCKS, stop - s), int(self.as_sums))
+            tsdf_blocks.init_blocks(self, s, min(CHUNK_BLOCKS, stop - s), int(self.as_sums))
         self._used_slots = max(self._used_slots, end)
 
     def finalize(self) -> None:
         """Turn build-time sums into distances; the map is then ready for queries."""
-        from mcl3d.kernels import tsdf as k
-
         if not self.as_sums:
             return
         n = self.n_blocks
-        for kernel in (k.finalize_blocks, k.refine_free_voxels, k.unmark_free_voxels):
+        for kernel in (tsdf_fusion.finalize_blocks, tsdf_fusion.refine_free_voxels,
+                       tsdf_fusion.unmark_free_voxels):
             for s in range(0, n, CHUNK_BLOCKS):
                 kernel(self, s, min(CHUNK_BLOCKS, n - s))
         self.as_sums = False
@@ -242,32 +227,26 @@ class TsdfMap:
     # ---------------------------------------------------------------- host transfer
     def allocate(self, coords: np.ndarray) -> None:
         """Allocate the given block coordinates (n, 3) and initialize the new blocks."""
-        from mcl3d.kernels import tsdf as k
-
         coords = np.ascontiguousarray(coords, dtype=np.int32).reshape(-1, 3)
         before = self.requested_blocks
         for s in range(0, len(coords), CHUNK_CELLS):
             part = coords[s:s + CHUNK_CELLS]
-            k.allocate_coords(self, part, len(part))
+            tsdf_blocks.allocate_coords(self, part, len(part))
         self.init_new_blocks(before, self.requested_blocks)
         self.check_capacity()
 
     def mark_free(self, coords: np.ndarray) -> None:
-        from mcl3d.kernels import tsdf as k
-
         coords = np.ascontiguousarray(coords, dtype=np.int32).reshape(-1, 3)
         for s in range(0, len(coords), CHUNK_CELLS):
             part = coords[s:s + CHUNK_CELLS]
-            k.mark_free_coords(self, part, len(part))
+            tsdf_blocks.mark_free_coords(self, part, len(part))
 
     def write_blocks(self, coords: np.ndarray, sdf: np.ndarray, weight: np.ndarray) -> None:
         """Set values of allocated blocks (coords (n,3), sdf/weight (n,8,8,8))."""
-        from mcl3d.kernels import tsdf as k
-
         coords = np.ascontiguousarray(coords, dtype=np.int32).reshape(-1, 3)
         for s in range(0, len(coords), CHUNK_BLOCKS):
             e = min(s + CHUNK_BLOCKS, len(coords))
-            k.write_blocks(self, coords[s:e],
+            tsdf_blocks.write_blocks(self, coords[s:e],
                            np.ascontiguousarray(sdf[s:e], dtype=np.float32),
                            np.ascontiguousarray(weight[s:e], dtype=np.float32), e - s)
 
@@ -276,8 +255,6 @@ class TsdfMap:
 
     def blocks(self) -> BlockData:
         """Copy the allocated blocks and the FREE block list to the host."""
-        from mcl3d.kernels import tsdf as k
-
         n = self.n_blocks
         coords = np.zeros((n, 3), np.int32)
         sdf = np.zeros((n, BLOCK, BLOCK, BLOCK), np.float32)
@@ -287,19 +264,40 @@ class TsdfMap:
             c = np.zeros((e - s, 3), np.int32)
             d = np.zeros((e - s, BLOCK, BLOCK, BLOCK), np.float32)
             w = np.zeros_like(d)
-            k.read_blocks(self, s, e - s, c, d, w)
+            tsdf_blocks.read_blocks(self, s, e - s, c, d, w)
             coords[s:e], sdf[s:e], weight[s:e] = c, d, w
         coarse = self.coarse_numpy()
-        free = np.argwhere(coarse == k.FREE).astype(np.int32)
+        free = np.argwhere(coarse == FREE).astype(np.int32)
         return BlockData(coords, sdf, weight, free)
 
-    # ------------------------------------------------------------------ statistics
-    def stats(self) -> dict:
-        """Counts for summaries: blocks, observed / free voxels, memory."""
-        return block_stats(self.geometry, self.blocks(), self.bytes_per_block())
+
+@dataclass(frozen=True)
+class MapStats:
+    """Counts and memory of a map, for summaries (voxel counts include those of FREE
+    blocks)."""
+
+    blocks: int  # allocated
+    free_blocks: int
+    unknown_cells: int  # coarse cells neither allocated nor free
+    observed_voxels: int
+    free_voxels: int  # observed, at least a truncation from every surface
+    surface_voxels: int  # within half a voxel diagonal of the surface
+    bytes_per_block: int
+    pool_bytes: int
+    coarse_bytes: int
+    dense_grid_bytes: int  # a dense grid of the same extent
+    extent_lo_m: list[float]
+    extent_hi_m: list[float]
+    file_bytes: int | None = None  # the map file, when there is one
 
 
-def block_stats(geometry: MapGeometry, data: BlockData, bytes_per_block: int) -> dict:
+def loaded_bytes_per_block(f16: bool) -> int:
+    """Device memory per block of a map loaded for localization (read-only): distances and
+    weights, plus the block's coordinate and free flag."""
+    return VOXELS_PER_BLOCK * (4 if f16 else 8) + 16
+
+
+def block_stats(geometry: MapGeometry, data: BlockData, bytes_per_block: int) -> MapStats:
     """Blocks, observed / free / surface voxels, and memory against a dense grid."""
     trunc = geometry.truncation_m
     observed = data.weight > 0
@@ -308,17 +306,17 @@ def block_stats(geometry: MapGeometry, data: BlockData, bytes_per_block: int) ->
     n_blocks, n_free = len(data.coords), len(data.free_coords)
     bytes_per_voxel = data.sdf.dtype.itemsize + data.weight.dtype.itemsize
     lo, hi = geometry.extent_m
-    return {
-        "blocks": n_blocks,
-        "free_blocks": n_free,
-        "unknown_cells": geometry.n_cells - n_blocks - n_free,
-        "observed_voxels": int(observed.sum()) + n_free * VOXELS_PER_BLOCK,
-        "free_voxels": int(free_vox.sum()) + n_free * VOXELS_PER_BLOCK,
-        "surface_voxels": int(surface.sum()),
-        "bytes_per_block": bytes_per_block,
-        "pool_bytes": n_blocks * bytes_per_block,
-        "coarse_bytes": geometry.n_cells * 4,
-        "dense_grid_bytes": geometry.n_cells * VOXELS_PER_BLOCK * bytes_per_voxel,
-        "extent_lo_m": [round(float(x), 3) for x in lo],
-        "extent_hi_m": [round(float(x), 3) for x in hi],
-    }
+    return MapStats(
+        blocks=n_blocks,
+        free_blocks=n_free,
+        unknown_cells=geometry.n_cells - n_blocks - n_free,
+        observed_voxels=int(observed.sum()) + n_free * VOXELS_PER_BLOCK,
+        free_voxels=int(free_vox.sum()) + n_free * VOXELS_PER_BLOCK,
+        surface_voxels=int(surface.sum()),
+        bytes_per_block=bytes_per_block,
+        pool_bytes=n_blocks * bytes_per_block,
+        coarse_bytes=geometry.n_cells * 4,
+        dense_grid_bytes=geometry.n_cells * VOXELS_PER_BLOCK * bytes_per_voxel,
+        extent_lo_m=[round(float(x), 3) for x in lo],
+        extent_hi_m=[round(float(x), 3) for x in hi],
+    )

@@ -1,4 +1,5 @@
-"""Terminal output: one progress-bar helper and one summary-table helper, both Rich.
+"""The CLI's terminal output, all Rich: progress bars drawn from the pipelines' progress
+reports, summary tables, the tables of `mcl3d info`, and library errors with their flags.
 
 Progress bars show on a terminal and stay silent in pipes and CI, so logs stay clean.
 """
@@ -6,8 +7,9 @@ Progress bars show on a terminal and stay silent in pipes and CI, so logs stay c
 from __future__ import annotations
 
 import os
-from collections.abc import Iterable, Iterator, Sequence
-from typing import TypeVar
+from collections.abc import Sequence
+from datetime import datetime, timezone
+from pathlib import Path
 
 from rich.console import Console
 from rich.progress import (
@@ -21,11 +23,15 @@ from rich.progress import (
 from rich.table import Table
 
 from mcl3d.core import progress as pipeline_progress
+from mcl3d.evaluation.metrics import Evaluation
+from mcl3d.io.logs.info import CloudInfo, LogInfo
+from mcl3d.io.logs.ros_types import short_type
 
 console = Console(highlight=False)
 err_console = Console(stderr=True, highlight=False)
 
-T = TypeVar("T")
+# settings whose flag is not named like them
+FLAG_OF_SETTING = {"max_capacity_blocks": "--capacity-blocks"}
 
 
 def show_progress() -> bool:
@@ -48,17 +54,12 @@ def make_progress() -> Progress:
     )
 
 
-def track(items: Iterable[T], total: int | None, description: str,
-          unit: str = "frames") -> Iterator[T]:
-    """Iterate with a progress bar showing `unit`/s and ETA; no output outside a terminal."""
-    with make_progress() as progress:
-        task = progress.add_task(description, total=total, status="", rate="")
-        for item in items:
-            yield item
-            progress.advance(task)
-            speed = progress.tasks[task].speed
-            if speed:
-                progress.update(task, rate=f"{speed:.1f} {unit}/s")
+def with_flag(message: str, setting: str | None) -> str:
+    """A library message plus the CLI flag of the setting that fixes it (the library names
+    settings, never flags)."""
+    if setting is None:
+        return message
+    return f"{message} ({FLAG_OF_SETTING.get(setting, '--' + setting.replace('_', '-'))})"
 
 
 def summary_table(title: str, rows: Sequence[tuple[str, str]]) -> Table:
@@ -97,3 +98,85 @@ class ProgressBars:
             rate = f"{speed:.1f}/s" if speed else ""
         self._progress.update(task, completed=report.done, total=report.total,
                               status=report.status, rate=rate)
+
+
+def _iso(stamp_ns: int | None) -> str:
+    if stamp_ns is None:
+        return "-"
+    when = datetime.fromtimestamp(stamp_ns // 1_000_000_000, tz=timezone.utc)
+    frac = stamp_ns % 1_000_000_000
+    return f"{when:%Y-%m-%dT%H:%M:%S}.{frac // 1_000_000:03d}Z ({stamp_ns * 1e-9:.3f} s)"
+
+
+def _cloud_table(topic: str, cloud: CloudInfo) -> Table:
+    layout = (f"organized {cloud.height} x {cloud.width}" if cloud.organized
+              else f"unorganized, {cloud.width} points")
+    fields = " ".join(f"{n}:{t}" + (f"[{c}]" if c > 1 else "") for n, t, c in cloud.fields)
+    time_text = "none"
+    if cloud.time_field:
+        time_text = f"field {cloud.time_field!r}"
+        if cloud.time_span_s is not None:
+            time_text += f", spans {cloud.time_span_s * 1e3:.1f} ms"
+    plural = "s" if cloud.scans_decoded != 1 else ""
+    title = f"Point cloud {topic} (first {cloud.scans_decoded} scan{plural} decoded)"
+    return summary_table(title, [
+        ("layout", layout),
+        ("fields", fields),
+        ("valid points", f"min {cloud.valid_min}, mean {cloud.valid_mean:.0f}, "
+                         f"max {cloud.valid_max} (NaN/inf/zero points dropped)"),
+        ("per-point time", time_text),
+    ])
+
+
+def log_info_tables(info: LogInfo) -> tuple[Table, ...]:
+    """`mcl3d info`'s tables: the log summary, its topics, and the topics mcl3d would use."""
+    duration = f"{info.duration_s:.3f} s" if info.duration_s is not None else "-"
+    head = summary_table(f"Log {info.path}", [
+        ("format", f"{info.format}, profile {info.profile}"),
+        ("library", info.library),
+        ("size", f"{info.size_bytes / 1e6:.1f} MB"),
+        ("duration", duration),
+        ("start", _iso(info.start_ns)),
+        ("end", _iso(info.end_ns)),
+        ("messages", str(info.message_count)),
+    ])
+    topics = Table(title="Topics", title_justify="left")
+    for column in ("topic", "type", "count", "rate Hz", "frame"):
+        topics.add_column(column, overflow="fold",
+                          justify="right" if column in ("count", "rate Hz") else "left")
+    for t in info.topics:
+        topics.add_row(t.topic, short_type(t.msgtype), "-" if t.count is None else str(t.count),
+                       "-" if t.rate_hz is None else f"{t.rate_hz:.1f}",
+                       ", ".join(t.frame_ids) or "-")
+    clouds = [_cloud_table(t.topic, t.cloud) for t in info.topics if t.cloud is not None]
+    chosen = summary_table("Topics mcl3d uses (--points-topic, --imu-topic, --odom-topic, "
+                           "--gt-topic override)",
+                           [(kind, with_flag(value, info.selection_settings.get(kind)))
+                            for kind, value in info.selection.items()])
+    return (head, topics, *clouds, chosen)
+
+
+def evaluation_tables(result: Evaluation, ref: Path, est: Path, plot: Path | None,
+                      json_path: Path | None) -> tuple[Table, Table]:
+    """`mcl3d eval`'s tables: what was compared and how, and the error statistics."""
+    how = result.alignment
+    aligned = {"none": "none", "origin": "origin (first poses coincide)",
+               "se3": "se3 (Umeyama)", "sim3": f"sim3 (Umeyama), scale {how.scale:.6f}"}
+    rows = [("reference", f"{ref} ({result.num_ref} poses)"),
+            ("estimate", f"{est} ({result.num_est} poses)"),
+            ("associated", f"{len(result.association)} poses within "
+                           f"{result.association.max_diff_s:g} s"),
+            ("alignment", aligned[how.method]),
+            ("RPE pairs", f"{result.rpe.pairs.shape[0]} at {result.rpe.delta:g} {result.rpe.unit}"
+                          f"{' (all pairs)' if result.rpe.all_pairs else ''}")]
+    rows += [(name, str(path)) for name, path in (("plot", plot), ("json", json_path)) if path]
+    stats = Table(title="Trajectory error", title_justify="left")
+    for column in ("metric", "unit", "rmse", "mean", "median", "std", "min", "max"):
+        stats.add_column(column, justify="left" if column in ("metric", "unit") else "right")
+    for name, unit, s in (("ATE translation", "m", result.ate.translation_m),
+                          ("ATE rotation", "deg", result.ate.rotation_deg),
+                          ("RPE translation", "m", result.rpe.translation_m),
+                          ("RPE rotation", "deg", result.rpe.rotation_deg)):
+        stats.add_row(name, unit, *(f"{v:.4f}" for v in
+                                    (s.rmse, s.mean, s.median, s.std, s.min, s.max)))
+    return summary_table("Evaluation", rows), stats

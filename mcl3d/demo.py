@@ -17,7 +17,23 @@ from pathlib import Path
 
 from rich.console import RenderableType
 
+from mcl3d.console import ProgressBars, log_info_tables, summary_table
+from mcl3d.core import config, runtime
 from mcl3d.core.errors import ConfigError, OutputExistsError
+from mcl3d.io.logs.info import log_info
+from mcl3d.localization.particle_set import check_capacity
+from mcl3d.localization.pipeline import LocalizeConfig, LocalizeRequest
+from mcl3d.localization.pipeline import run as localize
+from mcl3d.localization.sensor_model import MIN_SCAN_POINTS
+from mcl3d.localization.summary import LocalizeSummary
+from mcl3d.localization.summary import summary_rows as localize_rows
+from mcl3d.mapping.pipeline import BuildMapRequest
+from mcl3d.mapping.pipeline import run as build_map
+from mcl3d.mapping.pipeline import summary_rows as map_summary_rows
+from mcl3d.maps.build import BuildConfig
+from mcl3d.sim.pipeline import SimulateRequest
+from mcl3d.sim.pipeline import run as simulate
+from mcl3d.sim.pipeline import summary_rows as simulation_rows
 
 
 @dataclass(frozen=True)
@@ -45,17 +61,17 @@ class DemoStep:
     data: dict | None = None  # the step's machine-readable result (the localization summary)
 
 
-def verdict(summary: dict) -> tuple[bool, str]:
+def verdict(summary: LocalizeSummary) -> tuple[bool, str]:
     """(success, one line): did global localization converge onto the ground truth?"""
-    if summary["converged_at_scan"] is None:
-        return False, (f"global localization did not converge in {summary['scans']} scans; "
+    if summary.converged_at_scan is None:
+        return False, (f"global localization did not converge in {summary.scans} scans; "
                        f"try more particles (--particles) or a longer log (--duration)")
-    after = summary.get("ate_after_convergence")
+    after = summary.ate_after_convergence
     if after is None:
-        return True, f"converged after {summary['converged_after_s']:.1f} s (no ground truth)"
-    ok = after["translation_max_m"] <= SUCCESS_M and after["rotation_max_deg"] <= SUCCESS_DEG
-    where = (f"converged after {summary['converged_after_s']:.1f} s; from then on within "
-             f"{after['translation_max_m']:.3f} m and {after['rotation_max_deg']:.2f} deg of the "
+        return True, f"converged after {summary.converged_after_s:.1f} s (no ground truth)"
+    ok = after.translation_max_m <= SUCCESS_M and after.rotation_max_deg <= SUCCESS_DEG
+    where = (f"converged after {summary.converged_after_s:.1f} s; from then on within "
+             f"{after.translation_max_m:.3f} m and {after.rotation_max_deg:.2f} deg of the "
              f"ground truth")
     if ok:
         return True, where
@@ -77,26 +93,17 @@ def _run_folder(root: Path) -> Path:
 
 def check(req: DemoRequest) -> None:
     """Refuse impossible parameters before any folder is made."""
-    from mcl3d.localization.particle_set import check_capacity
-
     if not math.isfinite(req.duration_s) or req.duration_s <= 0:
-        raise ConfigError(f"--duration must be > 0 seconds, got {req.duration_s:g}")
-    if req.points is not None and req.points < 8:
-        raise ConfigError(f"--points must be >= 8, got {req.points}")
+        raise ConfigError(f"the log's duration must be > 0 seconds, got {req.duration_s:g}",
+                          setting="duration")
+    if req.points is not None and req.points < MIN_SCAN_POINTS:
+        raise ConfigError(f"the scan points per update must be >= {MIN_SCAN_POINTS}, got "
+                          f"{req.points}", setting="points")
     check_capacity(req.particles)
 
 
 def steps(req: DemoRequest):
     """Run the demo one step at a time, yielding each finished `DemoStep`."""
-    from mcl3d.console import summary_table
-    from mcl3d.core import config, runtime
-    from mcl3d.io.logs.info import log_info, render
-    from mcl3d.mapping.pipeline import BuildMapPipeline
-    from mcl3d.mapping.pipeline import summary_rows as map_summary_rows
-    from mcl3d.maps.build import BuildConfig
-    from mcl3d.sim.pipeline import SimulateRequest, summary_rows
-    from mcl3d.sim.pipeline import run as simulate
-
     check(req)
     folder = _run_folder(req.root)
     log = folder / "office.mcap"
@@ -105,14 +112,15 @@ def steps(req: DemoRequest):
     yield DemoStep("Simulate a short office log",
                    f"mcl3d simulate office --sensor {req.sensor} --trajectory ground "
                    f"--duration {req.duration_s:g} --seed {req.seed} -o {log}",
-                   [summary_table("Simulation", summary_rows(sim))])
-    yield DemoStep("Inspect the log", f"mcl3d info {log}", list(render(log_info(log))))
+                   [summary_table("Simulation", simulation_rows(sim))])
+    yield DemoStep("Inspect the log", f"mcl3d info {log}", list(log_info_tables(log_info(log))))
 
     backend = runtime.init(req.backend).backend
     tsdf = folder / "office.tsdf"
     mesh = folder / "office_map_mesh.ply"
-    built = BuildMapPipeline(log, tsdf, config.build(BuildConfig, {}), f16=True,
-                             export_mesh=mesh).run()
+    with ProgressBars() as bars:
+        built = build_map(BuildMapRequest(log, tsdf, config.build(BuildConfig, {}), f16=True,
+                                          export_mesh=mesh), bars.on_progress)
     yield DemoStep("Build a TSDF map from the log and its ground truth",
                    f"mcl3d --backend {backend} build-map {log} -o {tsdf} --f16 "
                    f"--export-mesh {mesh}",
@@ -122,26 +130,18 @@ def steps(req: DemoRequest):
 
 def localize_step(req: DemoRequest, log: Path, tsdf: Path, out: Path, backend: str) -> DemoStep:
     """Global localization of the log in its map, with the verdict against ground truth."""
-    from mcl3d.console import make_progress, summary_table
-    from mcl3d.core import config
-    from mcl3d.localization.pipeline import LocalizeConfig, run, summary_rows
-
     overrides = {"localizer.init.mode": "global", "localizer.particles": req.particles,
                  "localizer.seed": req.seed, "localizer.sensor.points": req.points}
     cfg = config.load(LocalizeConfig, None, overrides)
-    with make_progress() as progress:
-        task = progress.add_task("localize", total=None, status="", rate="")
-
-        def on_progress(result, done: int, total: int) -> None:
-            progress.update(task, completed=done, total=total, status=result.state,
-                            rate=f"{sum(result.timings_ms.values()):.0f} ms/update")
-
-        result = run(log, tsdf, out, cfg, backend=req.backend, on_progress=on_progress)
+    request = LocalizeRequest(log=log, map=tsdf, output_dir=out, config=cfg,
+                              backend=req.backend)
+    with ProgressBars() as bars:
+        result = localize(request, on_progress=bars.on_progress)
     ok, line = verdict(result.summary)
     points = "" if req.points is None else f" --points {req.points}"
     return DemoStep("Localize the log in its map from no initial guess",
                     f"mcl3d --backend {backend} localize {log} --map {tsdf} --init global "
                     f"--particles {req.particles}{points} --seed {req.seed} -o {out}",
-                    [summary_table("Localization", summary_rows(result.summary, out)),
+                    [summary_table("Localization", localize_rows(result.summary, out)),
                      f"[{'green' if ok else 'yellow'}]{line}"],
-                    {"success": ok, **result.summary})
+                    {"success": ok, **result.summary.to_json()})

@@ -6,15 +6,20 @@ command-line flags; the effective config is saved beside the run's outputs.
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Any, TypeVar
 
-import tomllib
 import yaml
 from pydantic import BaseModel, ConfigDict, ValidationError
 
 from mcl3d.core.errors import ConfigError
 from mcl3d.core.outputs import write_text_atomic
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # the same parser, published for Python 3.10
+    import tomli as tomllib
 
 
 class Section(BaseModel):

@@ -2,7 +2,13 @@
 
 
 class Mcl3dError(Exception):
-    """Base class: the message names what is wrong and what to do about it."""
+    """Base class: the message names what is wrong and what to do about it, in the problem's
+    words. `setting` names the request field that would fix it (e.g. "gt_topic", "force"):
+    the CLI appends the matching flag, so the library never speaks of flags."""
+
+    def __init__(self, message: str, *, setting: str | None = None) -> None:
+        super().__init__(message)
+        self.setting = setting
 
 
 class BackendUnavailable(Mcl3dError):
@@ -30,7 +36,7 @@ class TrajectoryError(InputError):
 
 
 class OutputExistsError(Mcl3dError):
-    """An output exists and --force was not given."""
+    """An output exists and overwriting was not allowed."""
 
 
 class MapError(Mcl3dError):

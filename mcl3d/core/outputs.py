@@ -22,7 +22,7 @@ def check_writable(path: Path, force: bool) -> None:
     """Refuse to overwrite an existing output unless `force`; fail early, before any work."""
     path = Path(path)
     if path.exists() and not force:
-        raise OutputExistsError(f"{path} already exists; pass --force to overwrite it")
+        raise OutputExistsError(f"{path} already exists; allow overwriting it", setting="force")
     if not path.parent.exists():
         raise OutputExistsError(f"cannot write {path}: folder {path.parent} does not exist")
 
@@ -67,7 +67,8 @@ def output_folder(path: Path) -> Iterator[Path]:
     kept on Ctrl-C) stays."""
     path = Path(path)
     if path.exists() and not path.is_dir():
-        raise OutputExistsError(f"{path} exists and is not a folder; choose another -o/--out")
+        raise OutputExistsError(f"{path} exists and is not a folder; choose another output folder",
+                                setting="out")
     created = not path.exists()
     path.mkdir(parents=True, exist_ok=True)
     try:

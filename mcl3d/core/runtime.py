@@ -10,10 +10,15 @@ from __future__ import annotations
 import contextlib
 import io
 import os
+import subprocess
 from dataclasses import dataclass
-from pathlib import Path
+
+import taichi as ti
+from taichi._lib import core as ti_core
+from taichi.lang import impl
 
 from mcl3d.core.errors import BackendUnavailable, ConfigError
+from mcl3d.core.vulkan_probe import vulkan_devices
 
 BACKENDS = ("auto", "cuda", "vulkan", "cpu")
 
@@ -33,19 +38,8 @@ def current() -> RuntimeInfo | None:
     return _current
 
 
-def _import_taichi():
-    os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "false")
-    # Taichi aborts (a C++ assertion) without HOME, as under systemd; the account's home
-    # from the password database is what HOME would have been.
-    os.environ.setdefault("HOME", str(Path.home()))
-    import taichi as ti
-
-    return ti
-
-
 def _start(backend: str, offline_cache: bool, debug: bool) -> str:
     """ti.init on exactly `backend`; returns the arch name Taichi actually started."""
-    ti = _import_taichi()
     arch = {"cuda": ti.cuda, "vulkan": ti.vulkan, "cpu": ti.cpu}[backend]
     ti.reset()
     quiet = io.StringIO()
@@ -62,9 +56,6 @@ def _start(backend: str, offline_cache: bool, debug: bool) -> str:
             )
     except RuntimeError:
         return "unavailable"
-    from taichi._lib import core as ti_core
-    from taichi.lang import impl
-
     return ti_core.arch_name(impl.current_cfg().arch)
 
 
@@ -79,10 +70,10 @@ def _cpu_name() -> str:
 def _missing_message(backend: str) -> str:
     if backend == "cuda":
         return ("backend 'cuda' is not available on this machine (no NVIDIA GPU or CUDA driver "
-                "found); use --backend cpu, or --backend auto to take the best one present")
+                "found); use the cpu backend, or auto to take the best one present")
     return ("backend 'vulkan' is not available on this machine (no Vulkan driver found); "
             "install one (e.g. `apt-get install mesa-vulkan-drivers libvulkan1`) "
-            "or use --backend cpu")
+            "or use the cpu backend")
 
 
 def _started_as(backend: str, arch_name: str) -> bool:
@@ -102,7 +93,6 @@ def init(backend: str = "auto", *, offline_cache: bool = True, debug: bool = Fal
         raise ConfigError(f"unknown backend {backend!r}; choose one of {', '.join(BACKENDS)}")
     if _current is not None and _current.requested == backend:
         return _current
-    from mcl3d.core.vulkan_probe import vulkan_devices
 
     if backend == "auto":
         hardware_vulkan = [d for d in vulkan_devices() if d.is_hardware]
@@ -114,15 +104,13 @@ def init(backend: str = "auto", *, offline_cache: bool = True, debug: bool = Fal
         if _started_as(candidate, arch_name):
             _current = RuntimeInfo(candidate, _device_name(candidate), backend)
             return _current
-    raise BackendUnavailable(_missing_message(backend))
+    raise BackendUnavailable(_missing_message(backend), setting="backend")
 
 
 def loop_threads() -> int:
     """Threads the cpu backend splits a parallel loop over (kernels.spread), 1 elsewhere."""
     if _current is None or _current.backend != "cpu":
         return 1
-    from taichi.lang import impl
-
     return max(1, int(impl.current_cfg().cpu_max_num_threads))
 
 
@@ -130,15 +118,11 @@ def _device_name(backend: str) -> str:
     if backend == "cpu":
         return _cpu_name()
     if backend == "vulkan":
-        from mcl3d.core.vulkan_probe import vulkan_devices
-
         devices = vulkan_devices()
         hardware = [d for d in devices if d.is_hardware]
         chosen = (hardware or devices)[0] if devices else None
         return chosen.name if chosen else "vulkan device"
     with contextlib.suppress(Exception):
-        import subprocess
-
         out = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"],
                              capture_output=True, text=True, timeout=5)
         if out.returncode == 0 and out.stdout.strip():

@@ -78,7 +78,8 @@ def associate(ref: Trajectory, est: Trajectory, max_diff_s: float = 0.01,
               ref_name: str = "the reference", est_name: str = "the estimate") -> Association:
     """Pair each pose of the shorter trajectory with the nearest-in-time pose of the other."""
     if not max_diff_s >= 0:
-        raise ConfigError(f"--t-max-diff must be >= 0 seconds, got {max_diff_s}")
+        raise ConfigError(f"the largest stamp difference must be >= 0 seconds, got {max_diff_s}",
+                          setting="t_max_diff")
     for traj, name in ((ref, ref_name), (est, est_name)):
         if len(traj) == 0:
             raise TrajectoryError(f"{name} has no poses")
@@ -90,7 +91,8 @@ def associate(ref: Trajectory, est: Trajectory, max_diff_s: float = 0.01,
         raise TrajectoryError(
             f"no stamps of {est_name} ({est.stamps_s[0]:.3f}..{est.stamps_s[-1]:.3f} s) match "
             f"{ref_name} ({ref.stamps_s[0]:.3f}..{ref.stamps_s[-1]:.3f} s) within "
-            f"{max_diff_s:g} s; check that both use the same clock, or raise --t-max-diff")
+            f"{max_diff_s:g} s; check that both use the same clock, or allow a larger "
+            f"difference", setting="t_max_diff")
     return Association(ref_idx, est_idx, ref.stamps_s[ref_idx], est.stamps_s[est_idx],
                        ref.poses[ref_idx], est.poses[est_idx], float(max_diff_s))
 
@@ -106,7 +108,7 @@ def umeyama(src_xyz: np.ndarray, dst_xyz: np.ndarray,
     if n < 3:
         raise TrajectoryError(
             f"Umeyama alignment needs at least 3 associated poses, got {n}; "
-            "use --align origin or none, or associate more poses (--t-max-diff)")
+            "align by the origin or not at all, or associate more poses", setting="align")
     mean_src, mean_dst = src_xyz.mean(axis=0), dst_xyz.mean(axis=0)
     centered_src, centered_dst = src_xyz - mean_src, dst_xyz - mean_dst
     sigma_src = np.sum(centered_src**2) / n
@@ -115,7 +117,7 @@ def umeyama(src_xyz: np.ndarray, dst_xyz: np.ndarray,
     if d[1] <= max(np.finfo(d.dtype).eps, 1e-12 * d[0]):
         raise TrajectoryError(
             "Umeyama alignment is undetermined: the associated estimate positions lie on one "
-            "line or point; use --align origin or none")
+            "line or point; align by the origin or not at all", setting="align")
     flip = np.eye(3)
     if np.linalg.det(u) * np.linalg.det(vt) < 0.0:
         flip[2, 2] = -1.0
@@ -219,9 +221,10 @@ def rpe(ref_poses: np.ndarray, est_poses: np.ndarray, stamps_s: np.ndarray, delt
     if unit not in RPE_UNITS:
         raise ConfigError(f"unknown RPE delta unit {unit!r}; use one of {', '.join(RPE_UNITS)}")
     if unit == "frames" and not (float(delta).is_integer() and delta >= 1):
-        raise ConfigError(f"--rpe-delta in frames must be a whole number >= 1, got {delta}")
+        raise ConfigError(f"the RPE delta in frames must be a whole number >= 1, got {delta}",
+                          setting="rpe_delta")
     if unit == "m" and not delta > 0:
-        raise ConfigError(f"--rpe-delta in metres must be > 0, got {delta}")
+        raise ConfigError(f"the RPE delta in metres must be > 0, got {delta}", setting="rpe_delta")
     n = est_poses.shape[0]
     if unit == "frames":
         pairs = _pairs_by_frames(n, int(delta), all_pairs)
@@ -232,7 +235,8 @@ def rpe(ref_poses: np.ndarray, est_poses: np.ndarray, stamps_s: np.ndarray, delt
         travelled = np.linalg.norm(np.diff(est_poses[:, :3, 3], axis=0), axis=1).sum()
         raise TrajectoryError(
             f"RPE delta {delta:g} {unit} gives no pose pairs ({n} associated poses, "
-            f"{travelled:.3f} m travelled by the estimate); lower --rpe-delta")
+            f"{travelled:.3f} m travelled by the estimate); use a smaller delta",
+            setting="rpe_delta")
     i, j = pairs[:, 0], pairs[:, 1]
     E = relative_se3(relative_se3(ref_poses[i], ref_poses[j]),
                      relative_se3(est_poses[i], est_poses[j]))

@@ -8,6 +8,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
 from mcl3d.core.errors import ConfigError
 from mcl3d.core.outputs import atomic_open
 from mcl3d.evaluation.metrics import Evaluation
@@ -21,17 +24,14 @@ def plot_format(path: Path) -> str:
     fmt = Path(path).suffix.lower().lstrip(".")
     if fmt not in PLOT_FORMATS:
         raise ConfigError(
-            f"--plot {path}: unknown image type {Path(path).suffix or '(no suffix)'}; "
-            f"end the name with one of {', '.join('.' + f for f in PLOT_FORMATS)}")
+            f"{path}: unknown image type {Path(path).suffix or '(no suffix)'}; "
+            f"end the name with one of {', '.join('.' + f for f in PLOT_FORMATS)}", setting="plot")
     return fmt
 
 
 def plot_evaluation(path: Path, evaluation: Evaluation, ref: Trajectory, est: Trajectory,
                     ref_label: str = "reference", est_label: str = "estimate") -> None:
     """Write a two-panel figure atomically: x-y top view (estimate aligned) and ATE over time."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
     fmt = plot_format(path)
     est_xyz = evaluation.alignment.apply(est.poses)[:, :3, 3]
     ref_xyz = ref.positions()

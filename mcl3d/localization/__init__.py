@@ -1,4 +1,9 @@
-"""Monte Carlo localization in a TSDF map (the embedded-GPU MCL paper): particle state,
-initialization, motion sources, the sensor model, the filter step, estimates and the
-`localize` pipeline.
+"""Monte Carlo localization in a TSDF map (the embedded-GPU MCL paper).
+
+`localizer.Localizer.step` is one filter update: predict, weigh (`weighing`, the sensor model
+of `sensor_model` on the device), estimate (`estimate`), resample (`resampling`), recover
+(`recovery`); `search` holds the global search (coarse model, annealing, mode-preserving
+resampling), `state` the filter state and per-scan result, `config` the parameters.
+`pipeline.run` localizes a log (`log_inputs`: motion source, gravity, initial pose;
+`outputs` and `summary`: what a run writes and reports).
 """

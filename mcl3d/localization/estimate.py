@@ -10,8 +10,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.stats import norm
 
 from mcl3d.core import geometry
+from mcl3d.localization.config import EstimateConfig
 
 
 @dataclass(frozen=True)
@@ -156,8 +158,6 @@ def kld_sample_count(occupied_bins: int, epsilon: float, delta: float, n_min: in
                      n_max: int) -> int:
     """Fox's KLD-sampling bound: particles needed so the KL error stays below `epsilon`
     with probability 1 - `delta`, using the real upper normal quantile z_{1-delta}."""
-    from scipy.stats import norm
-
     k = occupied_bins
     if k <= 1:
         return n_min
@@ -165,3 +165,60 @@ def kld_sample_count(occupied_bins: int, epsilon: float, delta: float, n_min: in
     a = 2.0 / (9.0 * (k - 1))
     n = (k - 1) / (2.0 * epsilon) * (1.0 - a + np.sqrt(a) * z) ** 3
     return int(np.clip(np.ceil(n), n_min, n_max))
+
+
+@dataclass(frozen=True)
+class WeightedParticles:
+    """One update's particles on the host (float64), weights normalized to sum 1."""
+
+    positions: np.ndarray  # (n, 3) m
+    quats_xyzw: np.ndarray  # (n, 4)
+    weights: np.ndarray  # (n,)
+    match: np.ndarray  # (n,) fraction of scan points on a surface
+    mean_ll: np.ndarray  # (n,) mean per-point log-likelihood
+
+
+@dataclass(frozen=True)
+class PoseEstimate:
+    """The estimate's parts: the dominant cluster's mean and spread, the other clusters."""
+
+    T_map_lidar: np.ndarray  # (4, 4) mean of the heaviest cluster
+    T_best: np.ndarray  # (4, 4) the heaviest particle
+    covariance: np.ndarray  # (6, 6) of the heaviest cluster, rotation-first [rad^2, m^2]
+    hypotheses: list[Hypothesis]  # the strong clusters (at least the heaviest one)
+    clusters: list[Hypothesis]  # every cluster found, heaviest first
+    dominant: bool  # the heaviest cluster is heavy and compact enough to be converged
+    match_ratio: float  # weighted mean fraction of scan points on a surface
+    mean_log_likelihood: float  # weighted mean per-point log-likelihood
+    sample_positions: np.ndarray  # (k, 3) float32 the clustered subsample (visualization)
+
+
+def systematic_sample(weights: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:
+    """`k` indices drawn by systematic resampling of `weights` (one random offset)."""
+    cdf = np.cumsum(weights)
+    cdf /= cdf[-1]
+    return np.minimum(np.searchsorted(cdf, (np.arange(k) + rng.random()) / k), len(cdf) - 1)
+
+
+def estimate_pose(cloud: WeightedParticles, cfg: EstimateConfig, rng: np.random.Generator
+                  ) -> PoseEstimate:
+    """Clusters of a weighted subsample of `cfg.samples` particles; the heaviest is the
+    estimate, dominant when it passes the convergence test."""
+    pos, quat, w = cloud.positions, cloud.quats_xyzw, cloud.weights
+    best = int(np.argmax(w))
+    T_best = geometry.se3_from_tq(pos[best], quat[best])
+    k = min(len(w), cfg.samples)
+    idx = systematic_sample(w, k, rng)
+    hyps = cluster_hypotheses(pos[idx], quat[idx], np.full(k, 1.0 / k),
+                              ClusterParams(cfg.cluster_radius_m, cfg.cluster_angle_rad,
+                                            cfg.max_hypotheses))
+    h0 = hyps[0]
+    compact = (h0.position_std_m <= cfg.converged_std_m
+               and h0.rotation_std_rad <= cfg.converged_std_rad)
+    strong = [h for h in hyps if h.weight >= cfg.hypothesis_min_weight]
+    return PoseEstimate(
+        T_map_lidar=h0.T_map_lidar, T_best=T_best, covariance=h0.covariance,
+        hypotheses=strong or hyps[:1], clusters=hyps,
+        dominant=h0.weight >= cfg.converged_weight and compact,
+        match_ratio=float(w @ cloud.match), mean_log_likelihood=float(w @ cloud.mean_ll),
+        sample_positions=pos[idx].astype(np.float32))

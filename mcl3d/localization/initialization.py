@@ -1,5 +1,5 @@
 """Where the particles start: free-space cells of the map for global localization, the
-sensor's roll/pitch from the IMU's gravity, and the typed `--init` choices.
+sensor's roll/pitch from the IMU's gravity, and the typed initialization choices.
 
 Global candidates are cells observed free (every voxel at least the truncation distance
 from a surface, or a whole FREE block), optionally only those within a height band above
@@ -8,6 +8,7 @@ the nearest surface below (ground robots: the lidar rides 0.2-2.5 m above the fl
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -15,18 +16,21 @@ from pydantic import Field
 
 from mcl3d.core.config import Section
 from mcl3d.core.errors import ConfigError, MapError
+from mcl3d.core.geometry import rpy_to_rot
 
 MAX_DENSE_CELLS = 20_000_000  # the host grid for candidate cells stays under ~20 MB
 UNKNOWN_CELL, FREE_CELL, OCCUPIED_CELL = 0, 1, 2
 
 
 class InitConfig(Section):
-    """How particles are initialized (`--init`, `--init-std`, `--height-band`)."""
+    """How particles are initialized: globally, around a given pose or around the first
+    ground-truth pose. Angles in degrees; the `*_rad` properties convert them once."""
 
     mode: str = Field("global", description="global | pose | gt")
-    pose: list[float] | None = Field(None, description="x y z roll pitch yaw [m, rad]")
-    std: list[float] = Field([0.5, 0.5, 0.1, 0.05, 0.05, 0.3],
-                             description="std of x y z [m] and roll pitch yaw [rad] around "
+    pose: list[float] | None = Field(None, description="x y z roll pitch yaw [m, deg]")
+    std: list[float] = Field([0.5, 0.5, 0.1, 2.864788975654116, 2.864788975654116,
+                              17.188733853924695],
+                             description="std of x y z [m] and roll pitch yaw [deg] around "
                                          "the given pose")
     height_band_m: list[float] | str | None = Field(
         "auto", description="global: lidar height above the surface below [lo, hi] m; "
@@ -42,9 +46,27 @@ class InitConfig(Section):
     auto_band_m: float = Field(0.2, gt=0.0, description="half-width of the auto band")
     cell_m: float = Field(0.2, gt=0.0, description="resolution of the free-space candidates "
                                                    "(rounded to voxel x power of two)")
-    gravity_std_rad: float = Field(0.03, ge=0.0,
-                                   description="roll/pitch noise when taken from the IMU")
+    gravity_std_deg: float = Field(1.7188733853924696, ge=0.0,
+                                   description="roll/pitch noise when taken from the IMU, deg")
     imu_samples: int = Field(20, ge=1, description="accelerometer samples averaged for gravity")
+
+    @property
+    def pose_m_rad(self) -> list[float] | None:
+        """The given pose as x y z [m], roll pitch yaw [rad]."""
+        return None if self.pose is None else _m_deg_to_m_rad(self.pose)
+
+    @property
+    def std_m_rad(self) -> list[float]:
+        """The std around the pose as x y z [m], roll pitch yaw [rad]."""
+        return _m_deg_to_m_rad(self.std)
+
+    @property
+    def gravity_std_rad(self) -> float:
+        return math.radians(self.gravity_std_deg)
+
+
+def _m_deg_to_m_rad(values: list[float]) -> list[float]:
+    return [*values[:3], *(math.radians(v) for v in values[3:])]
 
 
 @dataclass
@@ -69,7 +91,8 @@ def cell_states(tsdf, factor: int) -> np.ndarray:
     dims = np.asarray(tsdf.coarse_dims) * k
     if np.prod(dims) > 8 * MAX_DENSE_CELLS:
         raise MapError(f"the map's grid {tsdf.coarse_dims} blocks is too large for global "
-                       f"initialization candidates; crop the map or use --init with a pose")
+                       f"initialization candidates; crop the map or start from a given pose",
+                       setting="init")
     grid = np.zeros(dims, np.uint8)
     for c in data.free_coords:
         grid[c[0] * k:(c[0] + 1) * k, c[1] * k:(c[1] + 1) * k, c[2] * k:(c[2] + 1) * k] = FREE_CELL
@@ -140,7 +163,8 @@ def free_cells(tsdf, cfg: InitConfig) -> FreeCells:
     if len(idx) == 0:
         where = f" within the height band {band} m above a surface" if band is not None else ""
         raise MapError(f"the map has no observed free space{where} to place particles in; "
-                       f"use --height-band none, or --init with a pose")
+                       f"drop the height band, or start from a given pose",
+                       setting="height_band")
     corners = np.asarray(tsdf.origin_m) + idx * cell
     return FreeCells(corners.astype(np.float32), float(cell))
 
@@ -151,8 +175,6 @@ def floor_height(points_lidar: np.ndarray, roll: float, pitch: float,
     sensor once the scan is levelled with the gravity's roll/pitch, if it holds a tenth of
     them or three times the mean level (a drone 3.4 m up sees as many wall returns below as
     floor ones); None without a floor."""
-    from mcl3d.core.geometry import rpy_to_rot
-
     p = np.asarray(points_lidar, dtype=np.float64).reshape(-1, 3)
     p = p[np.isfinite(p).all(axis=1)] @ rpy_to_rot(roll, pitch, 0.0).T
     below = p[(p[:, 2] < -0.1) & (np.hypot(p[:, 0], p[:, 1]) > 0.5), 2]

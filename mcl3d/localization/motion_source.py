@@ -11,6 +11,7 @@ Sources 2-3 are guesses, so they come with extra noise (`MotionSourceConfig`).
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass
 
@@ -27,12 +28,22 @@ class MotionSourceConfig(Section):
     source: str = Field("auto", description="auto | odom | imu | constant_velocity")
     guess_trans_std_m_per_s: float = Field(
         0.3, ge=0.0, description="extra translation noise when translation is a guess")
-    guess_rot_std_rad_per_s: float = Field(
-        0.3, ge=0.0, description="extra rotation noise when rotation is a guess")
+    guess_rot_std_deg_per_s: float = Field(
+        17.188733853924695, ge=0.0, description="extra rotation noise when rotation is a "
+                                                "guess, deg/s")
     unknown_speed_m_per_s: float = Field(
         1.0, ge=0.0, description="extra translation noise per s when no velocity is known")
-    unknown_turn_rad_per_s: float = Field(
-        0.5, ge=0.0, description="extra rotation noise per s when no rate is known")
+    unknown_turn_deg_per_s: float = Field(
+        28.64788975654116, ge=0.0, description="extra rotation noise per s when no rate is "
+                                               "known, deg/s")
+
+    @property
+    def guess_rot_std_rad_per_s(self) -> float:
+        return math.radians(self.guess_rot_std_deg_per_s)
+
+    @property
+    def unknown_turn_rad_per_s(self) -> float:
+        return math.radians(self.unknown_turn_deg_per_s)
 
 
 @dataclass

@@ -11,8 +11,11 @@ from __future__ import annotations
 import os
 
 import numpy as np
+import taichi as ti
 
 from mcl3d.core.errors import ConfigError
+from mcl3d.kernels.resample import SCAN_BLOCK
+from mcl3d.localization.estimate import WeightedParticles
 
 MAX_PARTICLES = 8_000_000  # one parallel loop must stay under Vulkan's 8M-iteration limit
 # two pose buffers + log_w, w, cdf, parent, match, ll + the locality key and visiting order
@@ -30,27 +33,26 @@ def available_memory_bytes() -> int | None:
 def check_capacity(capacity: int) -> None:
     """ConfigError before any allocation when `capacity` particles cannot work."""
     if capacity < 1:
-        raise ConfigError(f"--particles/--max-particles must be >= 1, got {capacity}")
+        raise ConfigError(f"the number of particles must be >= 1, got {capacity}",
+                          setting="particles")
     if capacity > MAX_PARTICLES:
         raise ConfigError(
             f"{capacity:,} particles is more than the supported {MAX_PARTICLES:,} (one kernel "
-            f"launch must stay under 8M iterations on Vulkan); use fewer particles")
+            f"launch must stay under 8M iterations on Vulkan); use fewer particles",
+            setting="particles")
     need = capacity * BYTES_PER_PARTICLE
     avail = available_memory_bytes()
     if avail is not None and need > 0.8 * avail:
         raise ConfigError(
             f"{capacity:,} particles need {need / 2**20:.0f} MiB but only "
-            f"{avail / 2**20:.0f} MiB of memory is free; use fewer particles")
+            f"{avail / 2**20:.0f} MiB of memory is free; use fewer particles",
+            setting="particles")
 
 
 class ParticleSet:
     """Particle fields sized `capacity`; `n` of them are in use."""
 
     def __init__(self, capacity: int):
-        import taichi as ti
-
-        from mcl3d.kernels.resample import SCAN_BLOCK
-
         check_capacity(capacity)
         self.capacity = int(capacity)
         self.n = int(capacity)
@@ -78,6 +80,16 @@ class ParticleSet:
         """(positions (n, 3), quaternions xyzw (n, 4), log-weights (n,)) as numpy copies."""
         n = self.n
         return (self.pos.to_numpy()[:n], self.quat.to_numpy()[:n], self.log_w.to_numpy()[:n])
+
+    def weighted_host(self, total_weight: float) -> WeightedParticles:
+        """The particles in use on the host, with the weights in `w` divided by their sum."""
+        n = self.n
+        return WeightedParticles(
+            positions=self.pos.to_numpy()[:n].astype(np.float64),
+            quats_xyzw=self.quat.to_numpy()[:n].astype(np.float64),
+            weights=self.w.to_numpy()[:n].astype(np.float64) / total_weight,
+            match=self.match.to_numpy()[:n].astype(np.float64),
+            mean_ll=self.ll_mean.to_numpy()[:n].astype(np.float64))
 
     def set_host(self, positions: np.ndarray, quats_xyzw: np.ndarray,
                  log_w: np.ndarray | None = None) -> None:

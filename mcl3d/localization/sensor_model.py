@@ -12,12 +12,15 @@ from dataclasses import dataclass
 
 import numpy as np
 from pydantic import Field, model_validator
+from scipy.ndimage import distance_transform_edt
 
 from mcl3d.core.config import Section
 from mcl3d.core.geometry import quat_to_rot
+from mcl3d.registration.preprocess import deskew
 
 BLOCK = 8
-FREE = -3  # mcl3d.kernels.tsdf.FREE (kept here so the NumPy twin needs no Taichi)
+MIN_SCAN_POINTS = 8  # fewer usable points after the range gate: the scan is skipped
+FREE = -3  # mcl3d.kernels.tsdf_lookup.FREE (kept here so the NumPy twin needs no Taichi)
 
 
 class SensorModelConfig(Section):
@@ -40,7 +43,7 @@ class SensorModelConfig(Section):
         16.0, gt=0.0, description="tempering: the summed log-likelihood is scaled by "
                                   "effective_points / M, as if only this many points were "
                                   "independent")
-    points: int = Field(256, ge=8, le=65536, description="M, scan points per update")
+    points: int = Field(256, ge=MIN_SCAN_POINTS, le=65536, description="M, scan points per update")
     min_range_m: float = Field(1.0, ge=0.0, description="closer points are dropped (the robot)")
     max_range_m: float = Field(60.0, gt=0.0, description="farther points are dropped")
     voxel_m: float = Field(0.25, gt=0.0, description="voxel grid before the random subset")
@@ -135,8 +138,6 @@ def reduce_scan(points: np.ndarray, cfg: SensorModelConfig, rng: np.random.Gener
         idx = idx[np.sort(rng.choice(len(idx), cfg.points, replace=False))]
     out = pts[idx]
     if times_s is not None and twist is not None and len(times_s) == len(pts):
-        from mcl3d.registration.preprocess import deskew
-
         out = deskew(out, np.asarray(times_s, dtype=np.float64)[idx], twist)
     return np.ascontiguousarray(out, dtype=np.float32)
 
@@ -236,8 +237,6 @@ def coarse_field(tsdf, cfg: SensorModelConfig) -> CoarseField:
     voxel was observed (or its block is FREE); distances are Euclidean between cell centres
     (an exact distance transform). Unknown cells near surfaces (just behind a wall) keep their
     distance, so a pose slightly off still scores by how far off it is."""
-    from scipy.ndimage import distance_transform_edt
-
     f = 1
     while f < BLOCK and tsdf.voxel_size_m * f * 2 <= cfg.coarse_cell_m + 1e-9:
         f *= 2

@@ -2,53 +2,110 @@
 
 Sources: a log (MCAP / bag) with ground truth or a trajectory file, a point-cloud map
 (PCD/PLY/KITTI .bin), a mesh (PLY/OBJ/STL/OFF/GLB), or a tsdf_localization HDF5 map. Every
-output is checked before the work starts and written atomically at the end.
+output is checked before the work starts and written atomically at the end. The contract:
+`run(request, on_progress=None) -> BuildMapResult`.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import open3d as o3d
 
 from mcl3d.core.errors import InputError, MapError, PointCloudError, RunInterrupted, TrajectoryError
 from mcl3d.core.outputs import check_writable
+from mcl3d.core.progress import Progress, ProgressCallback, report
+from mcl3d.io.logs.cloud_files import read_cloud_file
+from mcl3d.io.logs.reader import LogReader
+from mcl3d.io.trajectory import Trajectory, read_trajectory
+from mcl3d.maps import build, export, io
+from mcl3d.maps.hatsdf import import_hatsdf
+from mcl3d.maps.tsdf import (
+    MapGeometry,
+    MapStats,
+    TsdfMap,
+    block_stats,
+    loaded_bytes_per_block,
+)
 
 LOG_SUFFIXES = (".mcap", ".bag", ".db3")
 MESH_ONLY_SUFFIXES = (".obj", ".stl", ".off", ".gltf", ".glb")
 POINT_ONLY_SUFFIXES = (".pcd", ".bin")
 HDF5_SUFFIXES = (".h5", ".hdf5")
+FUSE_STAGE = "fusing scans"  # the progress stage of a log's scans
 
 
-@dataclass
+@dataclass(frozen=True)
+class BuildMapRequest:
+    """One map build: the source, the map file to write, and how to build it."""
+
+    source: Path  # a log, a point-cloud map, a mesh or a HATSDF map (see source_kind)
+    output: Path  # the map file (.tsdf)
+    config: build.BuildConfig = field(default_factory=build.BuildConfig)
+    trajectory: Path | None = None  # poses T_map_lidar of a log's scans (default: its ground
+    # truth); for a point cloud, viewpoints that orient its normals
+    f16: bool = False  # store distances and weights in half precision (read-only maps)
+    force: bool = False  # overwrite existing outputs
+    export_mesh: Path | None = None  # also write the zero level set as a mesh
+    export_points: Path | None = None  # also write the surface voxels as points
+    points_topic: str | None = None  # a log's point-cloud topic (default: detected)
+    gt_topic: str | None = None  # a log's ground-truth topic (default: detected)
+
+
+@dataclass(frozen=True)
+class MapExports:
+    """What the optional exports hold (None: not asked for)."""
+
+    mesh_triangles: int | None = None
+    surface_points: int | None = None
+
+
+@dataclass(frozen=True)
 class BuildMapResult:
     source: Path
     output: Path
-    source_kind: str
-    header: dict
-    stats: dict
-    seconds: float
-    n_scans: int = 0
-    n_points: int = 0
-    exports: dict = field(default_factory=dict)
+    source_kind: str  # log | points | mesh | hdf5
+    header: dict  # the map file's header, as written
+    geometry: MapGeometry
+    stats: MapStats  # memory as loaded for localization (read-only pool, f32 or f16)
+    seconds: float  # building, without writing
+    n_scans: int = 0  # scans fused (log sources)
+    n_points: int = 0  # points fused
+    exports: MapExports = MapExports()
 
     @property
     def scans_per_s(self) -> float:
         return self.n_scans / self.seconds if self.seconds > 0 else 0.0
 
 
-def _ply_has_faces(path: Path) -> bool:
-    with open(path, "rb") as f:
-        head = f.read(4096)
-    end = head.find(b"end_header")
-    text = head[:end if end >= 0 else len(head)].decode("ascii", "replace")
-    for line in text.splitlines():
-        parts = line.split()
-        if len(parts) == 3 and parts[:2] == ["element", "face"]:
-            return parts[2] != "0"
-    return False
+@dataclass
+class _Built:
+    """A finished map before it is written, and where it came from."""
+
+    tsdf: TsdfMap
+    source_info: dict  # the map file header's "source" entry
+    n_scans: int = 0
+    n_points: int = 0
+
+
+def run(request: BuildMapRequest, on_progress: ProgressCallback | None = None
+        ) -> BuildMapResult:
+    """Build the map and write it (and its exports); nothing is written when it fails or is
+    interrupted. `on_progress` hears of every scan of a log source."""
+    _check_outputs(request)
+    kind = source_kind(request.source)
+    start = time.perf_counter()
+    try:
+        built = _build(request, kind, on_progress)
+    except KeyboardInterrupt:
+        raise RunInterrupted("interrupted while building the map; nothing was "
+                             "written") from None
+    seconds = time.perf_counter() - start
+    return _write(request, built, kind, seconds)
 
 
 def source_kind(path: Path) -> str:
@@ -72,214 +129,63 @@ def source_kind(path: Path) -> str:
                      f"(.ply/.obj/.stl/.off/.glb) or a HATSDF map (.h5)")
 
 
-class BuildMapPipeline:
-    """One map build; `run()` reads as the list of steps."""
+def _ply_has_faces(path: Path) -> bool:
+    with open(path, "rb") as f:
+        head = f.read(4096)
+    end = head.find(b"end_header")
+    text = head[:end if end >= 0 else len(head)].decode("ascii", "replace")
+    for line in text.splitlines():
+        parts = line.split()
+        if len(parts) == 3 and parts[:2] == ["element", "face"]:
+            return parts[2] != "0"
+    return False
 
-    def __init__(self, source: Path, output: Path, config, *, trajectory: Path | None = None,
-                 f16: bool = False, force: bool = False, export_mesh: Path | None = None,
-                 export_points: Path | None = None, points_topic: str | None = None,
-                 gt_topic: str | None = None, progress: bool = True):
-        self.source = Path(source)
-        self.output = Path(output)
-        self.config = config
-        self.trajectory_path = Path(trajectory) if trajectory else None
-        self.f16 = f16
-        self.force = force
-        self.export_mesh = Path(export_mesh) if export_mesh else None
-        self.export_points = Path(export_points) if export_points else None
-        self.points_topic = points_topic
-        self.gt_topic = gt_topic
-        self.progress = progress
-        self.n_scans = 0
-        self.n_points = 0
 
-    def run(self) -> BuildMapResult:
-        self._check_outputs()
-        kind = source_kind(self.source)
-        start = time.perf_counter()
-        try:
-            tsdf, source_info = self._build(kind)
-        except KeyboardInterrupt:
-            raise RunInterrupted("interrupted while building the map; nothing was "
-                                 "written") from None
-        seconds = time.perf_counter() - start
-        return self._write(tsdf, kind, source_info, seconds)
+def _check_outputs(req: BuildMapRequest) -> None:
+    outputs = [p for p in (req.output, req.export_mesh, req.export_points) if p]
+    if len({p.resolve() for p in outputs}) != len(outputs):
+        raise InputError("the map, mesh and points outputs must be different files")
+    if req.export_mesh and req.export_mesh.suffix.lower() not in export.MESH_SUFFIXES:
+        raise InputError(f"{req.export_mesh}: unknown mesh type; use one of "
+                         f"{', '.join(export.MESH_SUFFIXES)}")
+    if req.export_points and req.export_points.suffix.lower() not in export.POINT_SUFFIXES:
+        raise InputError(f"{req.export_points}: unknown point-cloud type; use one of "
+                         f"{', '.join(export.POINT_SUFFIXES)}")
+    for path in outputs:
+        check_writable(path, req.force)
 
-    # ------------------------------------------------------------------ steps
-    def _check_outputs(self) -> None:
-        outputs = [p for p in (self.output, self.export_mesh, self.export_points) if p]
-        if len({p.resolve() for p in outputs}) != len(outputs):
-            raise InputError("the map, mesh and points outputs must be different files")
-        from mcl3d.maps.export import MESH_SUFFIXES, POINT_SUFFIXES
 
-        if self.export_mesh and self.export_mesh.suffix.lower() not in MESH_SUFFIXES:
-            raise InputError(f"{self.export_mesh}: unknown mesh type; use one of "
-                             f"{', '.join(MESH_SUFFIXES)}")
-        if self.export_points and self.export_points.suffix.lower() not in POINT_SUFFIXES:
-            raise InputError(f"{self.export_points}: unknown point-cloud type; use one of "
-                             f"{', '.join(POINT_SUFFIXES)}")
-        for path in outputs:
-            check_writable(path, self.force)
+# ------------------------------------------------------------------------ sources
+def _build(req: BuildMapRequest, kind: str, on_progress: ProgressCallback | None) -> _Built:
+    if kind == "log":
+        return _build_from_log(req, on_progress)
+    if kind == "points":
+        return _build_from_points(req)
+    if kind == "mesh":
+        vertices, triangles = _read_mesh(req.source)
+        tsdf = build.build_from_mesh(vertices, triangles, req.config)
+        return _Built(tsdf, {"kind": "mesh", "path": str(req.source),
+                             "triangles": len(triangles), "sign": req.config.mesh_sign})
+    tsdf = import_hatsdf(req.source, frame_id=req.config.frame_id)
+    return _Built(tsdf, {"kind": "hdf5 (tsdf_localization/HATSDF)", "path": str(req.source)})
 
-    def _build(self, kind: str):
-        from mcl3d.maps import build
 
-        if kind == "log":
-            return self._build_from_log()
-        if kind == "points":
-            from mcl3d.io.logs.cloud_files import read_cloud_file
-
-            cloud = read_cloud_file(self.source)
-            if len(cloud.points) == 0:
-                raise PointCloudError(f"{self.source}: the point cloud is empty")
-            viewpoints = None
-            if self.trajectory_path:
-                viewpoints = self._trajectory().positions()
-            self.n_points = len(cloud.points)
-            tsdf = build.build_from_points(cloud.points, self.config, viewpoints=viewpoints)
-            return tsdf, {"kind": "points", "path": str(self.source),
-                          "points": len(cloud.points),
-                          "normals_oriented_towards": "trajectory" if viewpoints is not None
-                          else "consistent tangent planes, floors up"}
-        if kind == "mesh":
-            vertices, triangles = _read_mesh(self.source)
-            tsdf = build.build_from_mesh(vertices, triangles, self.config)
-            return tsdf, {"kind": "mesh", "path": str(self.source),
-                          "triangles": len(triangles), "sign": self.config.mesh_sign}
-        from mcl3d.maps.hatsdf import import_hatsdf
-
-        tsdf = import_hatsdf(self.source, frame_id=self.config.frame_id)
-        return tsdf, {"kind": "hdf5 (tsdf_localization/HATSDF)", "path": str(self.source)}
-
-    def _trajectory(self):
-        from mcl3d.io.trajectory import read_trajectory
-
-        return read_trajectory(self.trajectory_path)
-
-    def _poses(self, reader):
-        from mcl3d.io.trajectory import Trajectory
-
-        if self.trajectory_path:
-            return self._trajectory(), str(self.trajectory_path)
-        stamps_ns, poses = reader.ground_truth()
-        order = np.argsort(stamps_ns, kind="stable")
-        stamps_ns, poses = stamps_ns[order], poses[order]
-        keep = np.concatenate([[True], np.diff(stamps_ns) > 0])
-        return (Trajectory(stamps_ns[keep] * 1e-9, poses[keep]),
-                f"{self.source} topic {reader.topics.gt}")
-
-    def _build_from_log(self):
-        from mcl3d.io.logs.reader import LogReader
-        from mcl3d.maps import build
-
-        cfg = self.config
-        with LogReader(self.source, points_topic=self.points_topic,
-                       gt_topic=self.gt_topic) as reader:
-            traj, traj_source = self._poses(reader)
-            lo, hi, n_scans, n_empty = self._scan_bounds(reader, traj)
-            lo = np.minimum(lo, traj.positions().min(axis=0))
-            hi = np.maximum(hi, traj.positions().max(axis=0))
-            geometry = build.MapGeometry.around(lo, hi, cfg.voxel_size_m, cfg.trunc_m,
-                                                margin_m=cfg.trunc_m + cfg.voxel_size_m)
-            needed = 0
-            while True:
-                tsdf = build.new_map(geometry, cfg, needed)
-                fuser = build.ScanFuser(tsdf, cfg)
-                self._fuse_all(reader, traj, fuser, n_scans)
-                if not tsdf.overflowed:
-                    break
-                needed = build.grown_capacity(tsdf, cfg)
-                tsdf.destroy()
-        tsdf.finalize()
-        self.n_scans, self.n_points = fuser.n_scans, fuser.n_points
-        return tsdf, {"kind": "log", "path": str(self.source), "points_topic":
-                      reader.topics.points, "poses": traj_source, "scans": fuser.n_scans,
-                      "empty_scans_skipped": n_empty, "deskewed": self._deskewed}
-
-    def _scan_pose(self, traj, cloud):
-        """(T_start, T_end, alpha) for a scan: its per-point times deskew it when present."""
-        stamp_s = cloud.stamp_ns * 1e-9
-        t0, t1 = traj.stamps_s[0], traj.stamps_s[-1]
-        if not (t0 <= stamp_s <= t1):
-            raise TrajectoryError(
-                f"scan at {stamp_s:.9f} s is outside the trajectory ({t0:.9f}..{t1:.9f} s); "
-                f"give a trajectory that covers the log (--trajectory) or trim the log")
-        times = cloud.times_s
-        if times is None or len(times) == 0 or not np.isfinite(times).all():
-            T = traj.interpolate_poses([stamp_s])[0]
-            return T, T, None
-        a, b = float(times.min()), float(times.max())
-        # the ends of a scan may lie just past the trajectory: deskew up to its ends
-        qa, qb = np.clip(stamp_s + np.array([a, b]), t0, t1)
-        T_a, T_b = traj.interpolate_poses([qa, qb])
-        self._deskewed = True
-        if b - a <= 0:
-            return T_a, T_a, None
-        return T_a, T_b, ((times - a) / (b - a)).astype(np.float32)
-
-    def _scan_bounds(self, reader, traj):
-        """Pass 1: check every scan has a pose and find the map's bounds."""
-        cfg = self.config
-        lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
-        n_scans = n_empty = 0
-        self._deskewed = False
-        for cloud in reader.scans():
-            pts = np.asarray(cloud.points, dtype=np.float32).reshape(-1, 3)
-            T, _, _ = self._scan_pose(traj, cloud)
-            r2 = (pts * pts).sum(axis=1)  # f32 and squared: this pass reads every scan
-            pts = pts[(r2 >= cfg.min_range_m**2) & (r2 <= cfg.max_range_m**2)]
-            n_scans += 1
-            if len(pts) == 0:
-                n_empty += 1
-                continue
-            world = pts @ T[:3, :3].T.astype(np.float32) + T[:3, 3].astype(np.float32)
-            lo, hi = np.minimum(lo, world.min(axis=0)), np.maximum(hi, world.max(axis=0))
-        if n_scans == n_empty:
-            raise PointCloudError(
-                f"{self.source}: none of its {n_scans} scans has points between "
-                f"{cfg.min_range_m} and {cfg.max_range_m} m; nothing to build a map from")
-        return lo, hi, n_scans, n_empty
-
-    def _fuse_all(self, reader, traj, fuser, n_scans: int) -> None:
-        from mcl3d.console import track
-
-        scans = reader.scans()
-        if self.progress:
-            scans = track(scans, n_scans, "fusing scans", unit="scans")
-        for cloud in scans:
-            if len(cloud.points) == 0:
-                continue
-            T_a, T_b, alpha = self._scan_pose(traj, cloud)
-            fuser.fuse(cloud.points, T_a, T_b, alpha)
-
-    def _write(self, tsdf, kind: str, source_info: dict, seconds: float) -> BuildMapResult:
-        from mcl3d.maps import export, io
-        from mcl3d.maps.tsdf import VOXELS_PER_BLOCK, block_stats
-
-        if tsdf.n_blocks == 0:
-            raise MapError(f"{self.source}: the map has no surface blocks; nothing to write")
-        build_info = {"config": self.config.model_dump(), "seconds": round(seconds, 3),
-                      "f16": self.f16}
-        header = io.save_map(self.output, tsdf, source=source_info, build=build_info,
-                             f16=self.f16)
-        data = tsdf.blocks()
-        # memory as loaded for localization (read-only pool, f32 or f16)
-        stats = block_stats(tsdf.geometry, data,
-                            VOXELS_PER_BLOCK * (4 if self.f16 else 8) + 16)
-        stats["file_bytes"] = self.output.stat().st_size
-        exports = {}
-        if self.export_mesh:
-            exports["mesh_triangles"] = export.write_mesh(self.export_mesh, tsdf.geometry, data)
-        if self.export_points:
-            exports["surface_points"] = export.write_points(self.export_points, tsdf.geometry,
-                                                            data)
-        return BuildMapResult(self.source, self.output, kind, header, stats, seconds,
-                              self.n_scans, self.n_points, exports)
+def _build_from_points(req: BuildMapRequest) -> _Built:
+    cloud = read_cloud_file(req.source)
+    if len(cloud.points) == 0:
+        raise PointCloudError(f"{req.source}: the point cloud is empty")
+    viewpoints = None
+    if req.trajectory:
+        viewpoints = read_trajectory(req.trajectory).positions()
+    tsdf = build.build_from_points(cloud.points, req.config, viewpoints=viewpoints)
+    return _Built(tsdf, {"kind": "points", "path": str(req.source),
+                         "points": len(cloud.points),
+                         "normals_oriented_towards": "trajectory" if viewpoints is not None
+                         else "consistent tangent planes, floors up"},
+                  n_points=len(cloud.points))
 
 
 def _read_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    import open3d as o3d
-
     mesh = o3d.io.read_triangle_mesh(str(path))
     vertices = np.asarray(mesh.vertices)
     triangles = np.asarray(mesh.triangles)
@@ -288,6 +194,144 @@ def _read_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return vertices, triangles
 
 
+# --------------------------------------------------------------------------- logs
+@dataclass
+class _LogScans:
+    """What the first pass over a log's scans found."""
+
+    lo_m: np.ndarray  # bounds of the in-range points in the map frame
+    hi_m: np.ndarray
+    n_scans: int
+    n_empty: int  # scans without a point in range
+    deskewed: bool  # some scans have per-point times
+
+
+def _build_from_log(req: BuildMapRequest, on_progress: ProgressCallback | None) -> _Built:
+    """Two passes over the scans: the map's bounds, then fusion; a pool that overflows is
+    grown and the fusion pass run again."""
+    cfg = req.config
+    with LogReader(req.source, points_topic=req.points_topic, gt_topic=req.gt_topic) as reader:
+        traj, traj_source = _poses(req, reader)
+        scans = _scan_bounds(req, reader, traj)
+        lo = np.minimum(scans.lo_m, traj.positions().min(axis=0))
+        hi = np.maximum(scans.hi_m, traj.positions().max(axis=0))
+        geometry = MapGeometry.around(lo, hi, cfg.voxel_size_m, cfg.trunc_m,
+                                      margin_m=cfg.trunc_m + cfg.voxel_size_m)
+        needed = 0
+        while True:
+            tsdf = build.new_map(geometry, cfg, needed)
+            fuser = build.ScanFuser(tsdf, cfg)
+            _fuse_all(reader, traj, fuser, scans.n_scans, on_progress)
+            if not tsdf.overflowed:
+                break
+            needed = build.grown_capacity(tsdf, cfg)
+            tsdf.destroy()
+    tsdf.finalize()
+    return _Built(tsdf, {"kind": "log", "path": str(req.source), "points_topic":
+                         reader.topics.points, "poses": traj_source, "scans": fuser.n_scans,
+                         "empty_scans_skipped": scans.n_empty, "deskewed": scans.deskewed},
+                  fuser.n_scans, fuser.n_points)
+
+
+def _poses(req: BuildMapRequest, reader: LogReader) -> tuple[Trajectory, str]:
+    """The scans' poses and where they come from: the trajectory file, else the log's
+    ground truth (sorted, repeated stamps dropped)."""
+    if req.trajectory:
+        return read_trajectory(req.trajectory), str(req.trajectory)
+    stamps_ns, poses = reader.ground_truth()
+    order = np.argsort(stamps_ns, kind="stable")
+    stamps_ns, poses = stamps_ns[order], poses[order]
+    keep = np.concatenate([[True], np.diff(stamps_ns) > 0])
+    return (Trajectory(stamps_ns[keep] * 1e-9, poses[keep]),
+            f"{req.source} topic {reader.topics.gt}")
+
+
+def _point_times(cloud) -> np.ndarray | None:
+    """The scan's per-point times (s from its stamp), None when it has no usable ones."""
+    times = cloud.times_s
+    if times is None or len(times) == 0 or not np.isfinite(times).all():
+        return None
+    return times
+
+
+def _scan_pose(traj: Trajectory, cloud):
+    """(T_start, T_end, alpha) for a scan: its per-point times deskew it when present."""
+    stamp_s = cloud.stamp_ns * 1e-9
+    t0, t1 = traj.stamps_s[0], traj.stamps_s[-1]
+    if not (t0 <= stamp_s <= t1):
+        raise TrajectoryError(
+            f"scan at {stamp_s:.9f} s is outside the trajectory ({t0:.9f}..{t1:.9f} s); "
+            f"give a trajectory that covers the log or trim the log", setting="trajectory")
+    times = _point_times(cloud)
+    if times is None:
+        T = traj.interpolate_poses([stamp_s])[0]
+        return T, T, None
+    a, b = float(times.min()), float(times.max())
+    # the ends of a scan may lie just past the trajectory: deskew up to its ends
+    qa, qb = np.clip(stamp_s + np.array([a, b]), t0, t1)
+    T_a, T_b = traj.interpolate_poses([qa, qb])
+    if b - a <= 0:
+        return T_a, T_a, None
+    return T_a, T_b, ((times - a) / (b - a)).astype(np.float32)
+
+
+def _scan_bounds(req: BuildMapRequest, reader: LogReader, traj: Trajectory) -> _LogScans:
+    """Pass 1: check every scan has a pose and find the map's bounds."""
+    cfg = req.config
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    n_scans = n_empty = 0
+    deskewed = False
+    for cloud in reader.scans():
+        pts = np.asarray(cloud.points, dtype=np.float32).reshape(-1, 3)
+        T, _, _ = _scan_pose(traj, cloud)
+        deskewed = deskewed or _point_times(cloud) is not None
+        r2 = (pts * pts).sum(axis=1)  # f32 and squared: this pass reads every scan
+        pts = pts[(r2 >= cfg.min_range_m**2) & (r2 <= cfg.max_range_m**2)]
+        n_scans += 1
+        if len(pts) == 0:
+            n_empty += 1
+            continue
+        world = pts @ T[:3, :3].T.astype(np.float32) + T[:3, 3].astype(np.float32)
+        lo, hi = np.minimum(lo, world.min(axis=0)), np.maximum(hi, world.max(axis=0))
+    if n_scans == n_empty:
+        raise PointCloudError(
+            f"{req.source}: none of its {n_scans} scans has points between "
+            f"{cfg.min_range_m} and {cfg.max_range_m} m; nothing to build a map from")
+    return _LogScans(lo, hi, n_scans, n_empty, deskewed)
+
+
+def _fuse_all(reader: LogReader, traj: Trajectory, fuser: build.ScanFuser, n_scans: int,
+              on_progress: ProgressCallback | None) -> None:
+    """Pass 2: fuse every scan, reporting each (empty ones included)."""
+    for done, cloud in enumerate(reader.scans(), start=1):
+        if len(cloud.points):
+            T_a, T_b, alpha = _scan_pose(traj, cloud)
+            fuser.fuse(cloud.points, T_a, T_b, alpha)
+        report(on_progress, Progress(FUSE_STAGE, done, n_scans))
+
+
+# ------------------------------------------------------------------------- output
+def _write(req: BuildMapRequest, built: _Built, kind: str, seconds: float) -> BuildMapResult:
+    tsdf = built.tsdf
+    if tsdf.n_blocks == 0:
+        raise MapError(f"{req.source}: the map has no surface blocks; nothing to write")
+    build_info = {"config": req.config.model_dump(), "seconds": round(seconds, 3),
+                  "f16": req.f16}
+    header = io.save_map(req.output, tsdf, source=built.source_info, build=build_info,
+                         f16=req.f16)
+    data = tsdf.blocks()
+    stats = block_stats(tsdf.geometry, data, loaded_bytes_per_block(req.f16))
+    stats = dataclasses.replace(stats, file_bytes=req.output.stat().st_size)
+    exports = MapExports(
+        mesh_triangles=(export.write_mesh(req.export_mesh, tsdf.geometry, data)
+                        if req.export_mesh else None),
+        surface_points=(export.write_points(req.export_points, tsdf.geometry, data)
+                        if req.export_points else None))
+    return BuildMapResult(req.source, req.output, kind, header, tsdf.geometry,
+                          stats, seconds, built.n_scans, built.n_points, exports)
+
+
+# ------------------------------------------------------------------ summary rows
 def format_bytes(n: float) -> str:
     for unit in ("B", "KiB", "MiB", "GiB"):
         if n < 1024 or unit == "GiB":
@@ -296,34 +340,36 @@ def format_bytes(n: float) -> str:
     return f"{n:.1f} GiB"
 
 
-def map_rows(header: dict, stats: dict) -> list[tuple[str, str]]:
+def map_rows(geometry: MapGeometry, stats: MapStats) -> list[tuple[str, str]]:
     """Summary-table rows describing a map: geometry, blocks, voxels, memory."""
-    lo, hi = stats["extent_lo_m"], stats["extent_hi_m"]
+    lo, hi = stats.extent_lo_m, stats.extent_hi_m
     size = [round(h - v, 2) for v, h in zip(lo, hi, strict=True)]
     return [
-        ("voxel / truncation", f"{header['voxel_size_m']} m / {header['truncation_m']} m"),
+        ("voxel / truncation", f"{geometry.voxel_size_m} m / {geometry.truncation_m} m"),
         ("extent", f"{lo} .. {hi} m ({size[0]} x {size[1]} x {size[2]} m)"),
-        ("coarse grid", " x ".join(str(d) for d in header["coarse_dims"]) + " blocks of 8³"),
-        ("blocks", f"{stats['blocks']} allocated, {stats['free_blocks']} free, "
-                   f"{stats['unknown_cells']} unknown"),
-        ("voxels", f"{stats['surface_voxels']} on the surface, {stats['observed_voxels']} "
-                   f"observed, {stats['free_voxels']} free"),
-        ("memory (loaded)", f"{format_bytes(stats['pool_bytes'] + stats['coarse_bytes'])} "
-                            f"({stats['bytes_per_block']} B/block) vs dense grid "
-                            f"{format_bytes(stats['dense_grid_bytes'])}"),
-        *([("file", format_bytes(stats["file_bytes"]))] if "file_bytes" in stats else []),
+        ("coarse grid", " x ".join(str(d) for d in geometry.coarse_dims) + " blocks of 8³"),
+        ("blocks", f"{stats.blocks} allocated, {stats.free_blocks} free, "
+                   f"{stats.unknown_cells} unknown"),
+        ("voxels", f"{stats.surface_voxels} on the surface, {stats.observed_voxels} "
+                   f"observed, {stats.free_voxels} free"),
+        ("memory (loaded)", f"{format_bytes(stats.pool_bytes + stats.coarse_bytes)} "
+                            f"({stats.bytes_per_block} B/block) vs dense grid "
+                            f"{format_bytes(stats.dense_grid_bytes)}"),
+        *([("file", format_bytes(stats.file_bytes))] if stats.file_bytes is not None else []),
     ]
 
 
 def summary_rows(result: BuildMapResult, backend: str) -> list[tuple[str, str]]:
     """Rows of the end-of-build summary table."""
     rows = [("source", f"{result.source} ({result.source_kind})"),
-            *map_rows(result.header, result.stats),
+            *map_rows(result.geometry, result.stats),
             ("time", f"{result.seconds:.2f} s on {backend}")]
     if result.n_scans:
         rows.append(("scans", f"{result.n_scans} ({result.scans_per_s:.1f} scans/s, "
                               f"{result.n_points} points)"))
     rows.append(("written", str(result.output)))
-    for key, value in result.exports.items():
-        rows.append((key.replace("_", " "), str(value)))
+    if result.exports.mesh_triangles is not None:
+        rows.append(("mesh triangles", str(result.exports.mesh_triangles)))
+    if result.exports.surface_points is not None:
+        rows.append(("surface points", str(result.exports.surface_points)))
     return rows

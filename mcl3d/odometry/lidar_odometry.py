@@ -22,7 +22,10 @@ from pydantic import Field, model_validator
 
 from mcl3d.core.config import Section
 from mcl3d.core.geometry import se3_exp, se3_inverse, se3_log
+from mcl3d.kernels.scan_grid import MAX_K
 from mcl3d.odometry.imu_preintegration import Preintegrated, gravity_from_static, preintegrate
+from mcl3d.registration.batch_gicp import BatchGicp
+from mcl3d.registration.gaussian_voxels import GaussianVoxelMaps
 from mcl3d.registration.preprocess import ScanGrid, deskew, estimate_covariances, voxel_downsample
 
 LOST_COVARIANCE = 1e6  # variance (rad², m²) of a motion that could not be measured
@@ -90,7 +93,7 @@ class OdometryFrame:
     overlap: float
     degenerate: bool
     warnings: list[str] = field(default_factory=list)
-    ms: float = 0.0
+    wall_ms: float = 0.0  # time `step` took
 
 
 def degeneracy(H: np.ndarray, translation_ratio: float, rotation_ratio: float) -> list[str]:
@@ -126,9 +129,6 @@ class Odometry:
 
     def __init__(self, config: OdometryConfig | None = None,
                  T_lidar_imu: np.ndarray | None = None):
-        from mcl3d.registration.batch_gicp import BatchGicp
-        from mcl3d.registration.gaussian_voxels import GaussianVoxelMaps
-
         self.cfg = cfg = config or OdometryConfig()
         self.maps = GaussianVoxelMaps(max_maps=cfg.max_keyframes * cfg.map_levels,
                                       buckets_per_map=cfg.buckets_per_map,
@@ -225,7 +225,7 @@ class Odometry:
         self._update_velocity(t_mid, T_mid, pre, None if imu is None or len(imu) == 0 else imu)
         self.mid_times.append(t_mid)
         self.mid_poses.append(T_mid)
-        frame.ms = (time.perf_counter() - t_start) * 1e3
+        frame.wall_ms = (time.perf_counter() - t_start) * 1e3
         self.frames.append(frame)
         return frame
 
@@ -233,13 +233,11 @@ class Odometry:
         """Range crop, deskew (when `times` are given), downsample and covariances into the
         GICP's source pool; returns the point count. On the device (ScanGrid) unless the scan
         has more voxels than `max_points`: then on the host, thinned evenly."""
-        from mcl3d.kernels.scan_grid import MAX_K
-
         cfg = self.cfg
         if cfg.k_neighbors <= MAX_K:
-            n = self.grid.downsample(points, cfg.voxel_size_m, self.gicp.src_pts, times,
+            n = self.grid.downsample(points, cfg.voxel_size_m, self.gicp.pool, times,
                                      None if times is None else xi, cfg.min_range_m,
-                                     cfg.max_range_m, self.gicp.src_cov, cfg.k_neighbors)
+                                     cfg.max_range_m, cfg.k_neighbors)
             if n is not None:
                 self.gicp.use_device_source(n, plane_covs=True)
                 return n
@@ -326,7 +324,8 @@ class Odometry:
         for level in range(cfg.map_levels):
             map_id = slot * cfg.map_levels + level
             self.maps.clear(map_id, self.map_voxel_size_m * 2**level)
-            self.maps.insert_rows(map_id, g.src_pts, g.src_cov, g.num_source, g.plane_covs)
+            self.maps.insert_rows(map_id, g.pool.points, g.pool.cov_rows, g.num_source,
+                                  g.plane_covs)
         self.keyframes.append((slot, T_world_lidar.copy(), se3_inverse(T_world_lidar)))
 
     def _update_velocity(self, t_mid_s: float, T_mid: np.ndarray, pre: Preintegrated | None,

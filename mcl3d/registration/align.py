@@ -12,9 +12,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mcl3d.core import runtime
 from mcl3d.core.errors import ConfigError, PointCloudError
 from mcl3d.core.geometry import rot_to_rpy
-from mcl3d.registration.gaussian_voxels import check_pose
+from mcl3d.registration.batch_gicp import BatchGicp
+from mcl3d.registration.gaussian_voxels import GaussianVoxelMaps, check_pose, ensure_runtime
 from mcl3d.registration.preprocess import Scan, preprocess
 
 __all__ = ["RegistrationResult", "Scan", "align", "preprocess"]
@@ -47,9 +49,6 @@ class _Engine:
     """Device fields for pairwise alignment, kept between calls and regrown when too small."""
 
     def __init__(self, levels: int, target_points: int, source_points: int):
-        from mcl3d.registration.batch_gicp import BatchGicp
-        from mcl3d.registration.gaussian_voxels import GaussianVoxelMaps, ensure_runtime
-
         self.runtime = ensure_runtime()
         buckets = 1 << max(14, int(np.ceil(np.log2(max(target_points, 1) * 2))))
         self.levels, self.target_points = levels, buckets // 2
@@ -60,8 +59,6 @@ class _Engine:
                               max_source_points=self.source_points)
 
     def fits(self, levels: int, target_points: int, source_points: int) -> bool:
-        from mcl3d.core import runtime
-
         return (runtime.current() is self.runtime and levels <= self.levels
                 and target_points <= self.target_points and source_points <= self.source_points)
 

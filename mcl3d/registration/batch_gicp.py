@@ -1,9 +1,10 @@
 """GICP for a batch of poses against Gaussian voxel maps, on the device.
 
-`BatchGicp` owns fixed-capacity fields (source points, rows, per-pose optimizer state) and
-drives kernels/gicp.py: one `iterate` launch (linearize, reduce, step) per Gauss-Newton/LM
-iteration for the whole batch. One pose (pairwise registration), a scan against several
-keyframe maps, and 10,000 particles x 3 keyframes all go through the same kernel.
+`BatchGicp` owns fixed-capacity containers (gicp_state: the source pool, rows, per-pose
+optimizer state) and drives kernels/gicp.py: one `iterate` launch (linearize, reduce, step)
+per Gauss-Newton/LM iteration for the whole batch. One pose (pairwise registration), a scan
+against several keyframe maps, and 10,000 particles x 3 keyframes all go through the same
+kernel.
 """
 
 from __future__ import annotations
@@ -11,10 +12,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import taichi as ti
 
 from mcl3d.core.errors import ConfigError, PointCloudError
 from mcl3d.core.geometry import quat_to_rot, se3
+from mcl3d.kernels import gicp
 from mcl3d.registration.gaussian_voxels import GaussianVoxelMaps, check_points
+from mcl3d.registration.gicp_state import GicpPoses, GicpRows, GicpSums, SourcePool
+from mcl3d.registration.preprocess import download_rows, plane_rows_to_covs
 
 STATUS_NAMES = ("running", "converged", "no correspondences", "stalled")
 SERIAL_GROUPS = 64  # fewer poses: reset and read them back on the calling thread
@@ -98,59 +103,32 @@ class BatchResult:
 
 
 class BatchGicp:
-    """Fields sized once: `max_groups` poses, `max_rows` (pose, map) terms, and a pool of
-    `max_source_points` source points with covariances shared by all rows."""
+    """Containers sized once: `poses` (`max_groups` poses), `rows` (`max_rows` (pose, map)
+    terms), and `pool` (`max_source_points` source points with covariances shared by all
+    rows)."""
 
     def __init__(self, maps: GaussianVoxelMaps, max_groups: int = 1, max_rows: int | None = None,
                  max_source_points: int = 65536):
         max_rows = max_groups if max_rows is None else max_rows
         if min(max_groups, max_rows, max_source_points) < 1:
             raise ConfigError("max_groups, max_rows and max_source_points must be >= 1")
-        import taichi as ti
-
         self.maps = maps
         self.max_groups, self.max_rows, self.max_source_points = max_groups, max_rows, \
             max_source_points
-        S, R, G = max_source_points, max_rows, max_groups
-        from mcl3d.kernels.gicp import LOOKAHEAD
-
         # padded: a block of lookups may read up to LOOKAHEAD - 1 points past a row's end;
-        # structure of arrays, so that a block loads them as whole vectors; covariances as
-        # their upper triangle (xx xy xz yy yz zz)
-        self.src_pts = ti.Vector.field(3, ti.f32, S + LOOKAHEAD, layout=ti.Layout.SOA)
-        self.src_cov = ti.Vector.field(6, ti.f32, S + LOOKAHEAD, layout=ti.Layout.SOA)
-        self.row_group = ti.field(ti.i32, R)
-        self.row_map = ti.field(ti.i32, R)
-        self.row_q = ti.Vector.field(4, ti.f32, R)
-        self.row_t = ti.Vector.field(3, ti.f32, R)
-        self.row_start = ti.field(ti.i32, R)
-        self.row_count = ti.field(ti.i32, R)
-        self.q_cur = ti.Vector.field(4, ti.f32, G)
-        self.t_cur = ti.Vector.field(3, ti.f32, G)
-        self.q_cand = ti.Vector.field(4, ti.f32, G)
-        self.t_cand = ti.Vector.field(3, ti.f32, G)
-        self.lam = ti.field(ti.f32, G)
-        self.status = ti.field(ti.i32, G)
-        self.iters = ti.field(ti.i32, G)
-        self.acc_H = ti.Matrix.field(6, 6, ti.f32, G)
-        self.acc_b = ti.Vector.field(6, ti.f32, G)
-        self.acc_e = ti.field(ti.f32, G)
-        self.acc_n = ti.field(ti.i32, G)
-        self.best_H = ti.Matrix.field(6, 6, ti.f32, G)
-        self.best_b = ti.Vector.field(6, ti.f32, G)
-        self.best_e = ti.field(ti.f32, G)
-        self.best_n = ti.field(ti.i32, G)
+        # structure of arrays, so that a block loads them as whole vectors
+        self.pool = SourcePool(max_source_points, padding=gicp.LOOKAHEAD, layout=ti.Layout.SOA)
+        self.rows = GicpRows(max_rows)
+        self.poses = GicpPoses(max_groups)
         self.num_source = 0
-        self.plane_covs = False  # src_cov rows hold (n, α, β, 0), see plane_form
-        self._tasks: tuple | None = None  # per-task sums of a split linearization
+        self.plane_covs = False  # pool.cov_rows hold (n, α, β, 0), see plane_form
+        self._tasks: GicpSums | None = None  # per-task sums of a split linearization
         self.serial_correspondences = SERIAL_CORRESPONDENCES if maps.runtime.backend == "cpu" \
             else 0
 
     def set_source(self, points: np.ndarray, covs: np.ndarray) -> None:
         """Upload the source pool (points in the source frame, covariances (N, 3, 3)).
         Covariances of the form αI + βnnᵀ (all plane-regularized ones) take the faster path."""
-        from mcl3d.kernels import gicp
-
         pts = check_points(points, "source points")
         covs = np.asarray(covs, dtype=np.float64)
         if covs.shape != (len(pts), 3, 3):
@@ -166,13 +144,13 @@ class BatchGicp:
             rows = 0.5 * (covs[:, iu, ju] + covs[:, ju, iu])
         if len(pts):
             gicp.upload_source(np.ascontiguousarray(np.c_[pts, rows], np.float32), len(pts),
-                               self.src_pts, self.src_cov, self.maps.runtime.backend == "cpu")
+                               self.pool, self.maps.runtime.backend == "cpu")
         self.num_source = len(pts)
 
     def use_device_source(self, num_points: int, plane_covs: bool) -> None:
-        """Take the first `num_points` of `src_pts` / `src_cov` as the source pool, written
-        there on the device (preprocess.ScanGrid): rows (n, α, β, 0) when `plane_covs`,
-        else upper triangles (xx xy xz yy yz zz)."""
+        """Take the first `num_points` of `pool` as the source, written there on the device
+        (preprocess.ScanGrid): rows (n, α, β, 0) when `plane_covs`, else upper triangles
+        (xx xy xz yy yz zz)."""
         if not 0 <= num_points <= self.max_source_points:
             raise ConfigError(f"source has {num_points} points; this GICP holds at most "
                               f"{self.max_source_points}")
@@ -181,9 +159,7 @@ class BatchGicp:
 
     def source(self) -> tuple[np.ndarray, np.ndarray]:
         """The source pool back on the host: points (N, 3) and covariances (N, 3, 3)."""
-        from mcl3d.registration.preprocess import download_rows, plane_rows_to_covs
-
-        pts, rows = download_rows(self.src_pts, self.src_cov, self.num_source)
+        pts, rows = download_rows(self.pool, self.num_source)
         if self.plane_covs:
             return pts, plane_rows_to_covs(rows)
         iu, ju = np.triu_indices(3)
@@ -197,8 +173,6 @@ class BatchGicp:
                     row_count: np.ndarray | None = None, lm_lambda: float = 1e-3) -> int:
         """Upload initial poses (G, 4, 4) and rows; row r registers source points
         [row_start, row_start + row_count) into map row_map[r] at pose T_left[r] @ T[group]."""
-        from mcl3d.kernels import gicp
-
         T_init = np.asarray(T_init, dtype=np.float64).reshape(-1, 4, 4)
         G = len(T_init)
         row_group = np.asarray(row_group, dtype=np.int32).ravel()
@@ -223,28 +197,20 @@ class BatchGicp:
         rows_i = np.empty((R, 4), np.int32)
         rows_i[:, 0], rows_i[:, 1], rows_i[:, 2], rows_i[:, 3] = row_group, row_map, start, count
         rows_f = pose_rows(np.eye(4)[None] if T_left is None else T_left, R)
-        gicp.upload_problem(rows_i, rows_f, R, pose_rows(T_init, G), G, self.row_group,
-                            self.row_map, self.row_start, self.row_count, self.row_q, self.row_t,
-                            self.q_cand, self.t_cand, lm_lambda, self.q_cur, self.t_cur,
-                            self.lam, self.status, self.iters, self.acc_H, self.acc_b,
-                            self.acc_e, self.acc_n, self.best_n, self._serial_groups(G))
+        gicp.upload_problem(rows_i, rows_f, R, pose_rows(T_init, G), G, lm_lambda, self.rows,
+                            self.poses, self._serial_groups(G))
         self._started(G, R, int(count.max()), one_row_per_group=len(np.unique(row_group)) == R)
         return G
 
     def start(self, num_groups: int, num_rows: int, max_row_points: int,
               lm_lambda: float = 1e-3, one_row_per_group: bool = False) -> None:
-        """Begin an optimization of the first `num_groups` poses in (q_cand, t_cand) over the
-        first `num_rows` rows. `set_problem` calls it; a caller that fills those fields on the
+        """Begin an optimization of the first `num_groups` poses in poses (q_cand, t_cand) over
+        the first `num_rows` rows. `set_problem` calls it; a caller that fills those fields on the
         device (particles, keyframe poses) calls it directly and skips the host round trip.
         `one_row_per_group` (no two rows share a pose) lets whole-row tasks skip atomics."""
-        from mcl3d.kernels import gicp
-
         if not (1 <= num_groups <= self.max_groups and 1 <= num_rows <= self.max_rows):
             raise ConfigError(f"{num_groups} poses and {num_rows} rows do not fit this GICP")
-        gicp.reset_groups(num_groups, lm_lambda, self.q_cur, self.t_cur, self.q_cand,
-                          self.t_cand, self.lam, self.status, self.iters, self.acc_H,
-                          self.acc_b, self.acc_e, self.acc_n, self.best_n,
-                          self._serial_groups(num_groups))
+        gicp.reset_groups(num_groups, lm_lambda, self.poses, self._serial_groups(num_groups))
         self._started(num_groups, num_rows, max_row_points, one_row_per_group)
 
     def _started(self, num_groups: int, num_rows: int, max_row_points: int,
@@ -268,26 +234,17 @@ class BatchGicp:
         """One linearization of every running pose plus one solve; returns how many run on.
         `validate_surfaces` drops plane points whose surface faces away from the sensor of the
         map they are matched in (the map's origin; keyframe maps in their lidar frame)."""
-        from mcl3d.kernels import gicp
-
         maps = self.maps
         if chunk is None:
             chunk = self.default_chunk()
         num_chunks = (self._max_count + chunk - 1) // chunk
         exclusive = self._one_row_per_group and num_chunks == 1
-        sums = (self.acc_H, self.acc_b, self.acc_e, self.acc_n) if exclusive else \
-            self._task_sums(self._rows * num_chunks)
-        return gicp.iterate(self.src_pts, self.src_cov, self.row_group, self.row_map,
-                            self.row_q, self.row_t, self.row_start, self.row_count, self._rows,
-                            chunk, num_chunks, maps.vox, maps.res, maps.buckets,
-                            maps.max_probes, *sums, exclusive, self.plane_covs,
-                            self._one_row_per_group, self._groups, int(use_lm),
-                            rotation_eps_rad, translation_eps_m, self.q_cur, self.t_cur,
-                            self.q_cand, self.t_cand, self.lam, self.status, self.iters,
-                            self.acc_H, self.acc_b, self.acc_e, self.acc_n, self.best_H,
-                            self.best_b, self.best_e, self.best_n,
-                            self._serial(),
-                            SURFACE_VALIDATION_COS if validate_surfaces else 2.0)
+        tasks = self.poses.acc if exclusive else self._task_sums(self._rows * num_chunks)
+        return gicp.iterate(self.pool, self.rows, self._rows, chunk, num_chunks, maps,
+                            maps.buckets, maps.max_probes, tasks, self.poses, self._groups,
+                            int(use_lm), rotation_eps_rad, translation_eps_m,
+                            SURFACE_VALIDATION_COS if validate_surfaces else 2.0, exclusive,
+                            self.plane_covs, self._one_row_per_group, self._serial())
 
     def _serial_groups(self, num_groups: int) -> bool:
         """Few poses on cpu: their per-pose loops on the calling thread. Never on a GPU, where
@@ -299,14 +256,10 @@ class BatchGicp:
         """Few correspondences: the whole iteration on the calling thread (see gicp.linearize)."""
         return self._rows * self._max_count <= self.serial_correspondences
 
-    def _task_sums(self, tasks: int) -> tuple:
-        """Per-task sums for a split linearization (fields grown on demand, never shrunk)."""
-        import taichi as ti
-
-        if self._tasks is None or self._tasks[0].shape[0] < tasks:
-            size = 1 << max(6, (tasks - 1).bit_length())
-            self._tasks = (ti.Matrix.field(6, 6, ti.f32, size), ti.Vector.field(6, ti.f32, size),
-                           ti.field(ti.f32, size), ti.field(ti.i32, size))
+    def _task_sums(self, tasks: int) -> GicpSums:
+        """Per-task sums for a split linearization (grown on demand, never shrunk)."""
+        if self._tasks is None or self._tasks.n.shape[0] < tasks:
+            self._tasks = GicpSums(1 << max(6, (tasks - 1).bit_length()))
         return self._tasks
 
     def optimize(self, max_iterations: int = 20, use_lm: bool = False,
@@ -331,8 +284,6 @@ class BatchGicp:
         fraction of the source pool that lands in an occupied voxel of at least one of those
         maps, the pool placed in map k at `overlap_T_left[k] @ T` (list the likeliest first).
         One launch either way."""
-        from mcl3d.kernels import gicp
-
         G = self._groups
         maps = self.maps
         queries = np.zeros((1, 13), np.float32)
@@ -350,10 +301,8 @@ class BatchGicp:
             queries[:, 1:] = pose_rows(T_left, len(ids))
             num_queries = len(ids)
         out = np.empty((G, gicp.RESULT_COLUMNS), np.float32)
-        gicp.download_results(G, self.q_cur, self.t_cur, self.best_H, self.best_b, self.best_e,
-                              self.best_n, self.iters, self.status, self.src_pts,
-                              self.num_source if num_queries else 0, queries, num_queries,
-                              maps.vox, maps.res, maps.buckets, maps.max_probes, out,
+        gicp.download_results(G, self.poses, self.pool, self.num_source if num_queries else 0,
+                              queries, num_queries, maps, maps.buckets, maps.max_probes, out,
                               self._serial_groups(G), num_queries > 0)
         out = out.astype(np.float64)
         return BatchResult(

@@ -9,9 +9,12 @@ their covariances; a registration looks up exactly one voxel per point.
 from __future__ import annotations
 
 import numpy as np
+import taichi as ti
 
+from mcl3d.core import runtime
 from mcl3d.core.errors import ConfigError, MapError, PointCloudError
 from mcl3d.core.geometry import rot_to_quat
+from mcl3d.kernels import upload, voxel_hash
 
 GPU_LAUNCH_POINTS = 16384  # points per ordered launch off the cpu: one GPU thread takes them
 # in order, and Mesa's lavapipe stops any loop of one thread after 65,535 iterations
@@ -19,8 +22,6 @@ GPU_LAUNCH_POINTS = 16384  # points per ordered launch off the cpu: one GPU thre
 
 def ensure_runtime():
     """The running Taichi runtime, starting `auto` when the caller has not chosen one."""
-    from mcl3d.core import runtime
-
     return runtime.current() or runtime.init("auto")
 
 
@@ -48,8 +49,11 @@ class GaussianVoxelMaps:
     """Up to `max_maps` Gaussian voxel maps in one device hash table of fixed capacity.
 
     Each map has `buckets_per_map` slots (a power of two; keep the voxel count under about
-    half of it) and its own voxel size. Points are staged `max_points` at a time.
+    half of it) and its own voxel size. Points are staged `max_points` at a time. Kernels
+    take the maps as one `ti.template()` and read the table `vox` and the voxel sizes `res`.
     """
+
+    _data_oriented = True  # passed to kernels as one ti.template() (see gicp_state)
 
     def __init__(self, max_maps: int = 8, buckets_per_map: int = 1 << 16,
                  max_points: int = 131072, max_probes: int = 32):
@@ -61,14 +65,10 @@ class GaussianVoxelMaps:
         if max_maps * buckets_per_map > 1 << 26:
             raise ConfigError("max_maps * buckets_per_map must stay under 2^26 slots")
         self.runtime = ensure_runtime()
-        import taichi as ti
-
         self.max_maps, self.buckets, self.max_points = max_maps, buckets_per_map, max_points
         self.max_probes = max_probes
         slots = max_maps * buckets_per_map
-        from mcl3d.kernels.voxel_hash import Voxel
-
-        self.vox = Voxel.field(shape=slots, layout=ti.Layout.AOS)
+        self.vox = voxel_hash.Voxel.field(shape=slots, layout=ti.Layout.AOS)
         self.vsum = ti.Vector.field(3, ti.f32, slots)
         self.vsumcov = ti.Matrix.field(3, 3, ti.f32, slots)
         self.res = ti.field(ti.f32, max_maps)
@@ -80,8 +80,6 @@ class GaussianVoxelMaps:
         self.counter = ti.field(ti.i32, ())
         self._voxel_size = [0.0] * max_maps  # 0: not usable until clear() gives a size
         self._num_voxels = [0] * max_maps
-        from mcl3d.kernels import voxel_hash
-
         voxel_hash.clear_region(self.vox, self.vsum, self.vsumcov, 0, slots)
 
     def _region(self, map_id: int) -> tuple[int, int]:
@@ -99,8 +97,6 @@ class GaussianVoxelMaps:
 
     def clear(self, map_id: int, voxel_size_m: float) -> None:
         """Empty map `map_id` and give it a voxel size."""
-        from mcl3d.kernels import voxel_hash
-
         begin, end = self._region(map_id)
         if not np.isfinite(voxel_size_m) or voxel_size_m <= 0:
             raise ConfigError(f"voxel_size_m must be > 0, got {voxel_size_m}")
@@ -113,8 +109,6 @@ class GaussianVoxelMaps:
                T_map_points: np.ndarray | None = None) -> int:
         """Add points (N, 3) with covariances (N, 3, 3), given in a frame placed in the map by
         `T_map_points`, to map `map_id`; returns the map's voxel count afterwards."""
-        from mcl3d.kernels import upload
-
         self._region(map_id)
         if self._voxel_size[map_id] <= 0:
             raise MapError(f"map {map_id} has no voxel size: call clear(map_id, voxel_size_m)")
@@ -136,8 +130,6 @@ class GaussianVoxelMaps:
         """`insert` for points already on the device: the first `n` of the vec3 field `pts`
         with covariance rows `rows` (upper triangles xx xy xz yy yz zz, or (n, α, β, 0) for
         αI + βnnᵀ when `plane`), e.g. a BatchGicp's source pool: no host round trip."""
-        from mcl3d.kernels import voxel_hash
-
         self._region(map_id)
         if self._voxel_size[map_id] <= 0:
             raise MapError(f"map {map_id} has no voxel size: call clear(map_id, voxel_size_m)")
@@ -151,8 +143,6 @@ class GaussianVoxelMaps:
 
     def _add_staged(self, map_id: int, n: int, T: np.ndarray) -> None:
         """Add the `n` staged points (their frame placed in the map by T) to map `map_id`."""
-        from mcl3d.kernels import voxel_hash
-
         res = self._voxel_size[map_id]
         voxel_hash.begin_insert(self.pts, self.covs, n, T.astype(np.float32), res,
                                 self.coord, self.probe, self.slot)
@@ -168,16 +158,12 @@ class GaussianVoxelMaps:
                 f"voxel size) or lie over 2^20 voxels from the map's origin")
 
     def _finalize(self, map_id: int) -> int:
-        from mcl3d.kernels import voxel_hash
-
         begin, end = self._region(map_id)
         self._num_voxels[map_id] = voxel_hash.finalize(
             self.vox, self.vsum, self.vsumcov, self._voxel_size[map_id], begin, end)
         return self._num_voxels[map_id]
 
     def _settle(self, map_id: int, n: int) -> None:
-        from mcl3d.kernels import voxel_hash
-
         args = (self.coord, self.probe, self.slot, n, map_id, self.buckets, self.vox)
         for _ in range(self.max_probes + 1):
             voxel_hash.claim_slots(*args)
@@ -187,8 +173,6 @@ class GaussianVoxelMaps:
 
     def voxels(self, map_id: int) -> tuple[np.ndarray, np.ndarray]:
         """(means (V, 3), covariances (V, 3, 3)) of map `map_id`, in no particular order."""
-        from mcl3d.kernels import voxel_hash
-
         begin, end = self._region(map_id)
         v = self._num_voxels[map_id]
         means = np.zeros((max(v, 1), 3), np.float32)
@@ -201,8 +185,6 @@ class GaussianVoxelMaps:
                 T_map_points: list[np.ndarray]) -> float:
         """Fraction of `points` that land in an occupied voxel of at least one of `map_ids`,
         point set placed in map k by T_map_points[k] (the keyframe-insertion test)."""
-        from mcl3d.kernels import upload, voxel_hash
-
         pts = check_points(points)
         if len(map_ids) != len(T_map_points) or not 1 <= len(map_ids) <= self.max_maps:
             raise ConfigError("overlap needs one pose per map id and 1..max_maps maps")
@@ -221,8 +203,6 @@ class GaussianVoxelMaps:
                    T_map_points: list[np.ndarray]) -> float:
         """`overlap` of the first `n` points of a device vec3 field (a BatchGicp's source
         pool): no upload."""
-        from mcl3d.kernels import voxel_hash
-
         if len(map_ids) != len(T_map_points) or not 1 <= len(map_ids) <= self.max_maps:
             raise ConfigError("overlap needs one pose per map id and 1..max_maps maps")
         if n <= 0:

@@ -11,9 +11,15 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import taichi as ti
+from scipy.spatial import cKDTree
 
 from mcl3d.core.errors import ConfigError, PointCloudError
+from mcl3d.kernels import scan_grid
+from mcl3d.kernels.covariance import plane_covariances
+from mcl3d.kernels.deskew import deskew_points
 from mcl3d.registration.gaussian_voxels import GPU_LAUNCH_POINTS, check_points, ensure_runtime
+from mcl3d.registration.gicp_state import SourcePool
 
 PLANE_EIGENVALUES = (1e-3, 1.0, 1.0)  # normal first, as small_gicp/gtsam_points (kernel: n, 1, 1)
 MIN_NEIGHBORS = 5  # fewer neighbours than this: identity covariance
@@ -74,8 +80,6 @@ def estimate_covariances(points: np.ndarray, k_neighbors: int = 10,
     a near-horizontal line (a sparse lidar's scan line: no surface normal; see
     kernels/covariance.is_scan_line), gets the identity.
     """
-    from scipy.spatial import cKDTree
-
     pts = check_points(points)
     if k_neighbors < MIN_NEIGHBORS:
         raise ConfigError(f"k_neighbors must be >= {MIN_NEIGHBORS}, got {k_neighbors}")
@@ -88,8 +92,6 @@ def estimate_covariances(points: np.ndarray, k_neighbors: int = 10,
     counts = found.sum(axis=1).astype(np.int32)
     # found neighbours come first in each row (sorted by distance); the rest are never read
     neighbors = np.where(found, idx, 0).astype(np.int32)
-    from mcl3d.kernels.covariance import plane_covariances
-
     ensure_runtime()
     out = np.empty((len(pts), 3, 3), np.float32)
     plane_covariances(np.ascontiguousarray(pts, np.float32), np.ascontiguousarray(neighbors),
@@ -116,8 +118,6 @@ def deskew(points: np.ndarray, point_times_s: np.ndarray, twist: np.ndarray) -> 
         raise PointCloudError("point times and the twist must be finite (twist has 6 values)")
     if len(pts) == 0:
         return pts
-    from mcl3d.kernels.deskew import deskew_points
-
     ensure_runtime()
     out = np.empty((len(pts), 3), np.float32)
     deskew_points(np.ascontiguousarray(pts, np.float32), np.ascontiguousarray(times, np.float32),
@@ -140,9 +140,9 @@ def preprocess(points: np.ndarray, voxel_size_m: float = 0.25, k_neighbors: int 
 
 class ScanGrid:
     """Deskewing, range crop, voxel-grid downsampling and plane covariances of one scan at a
-    time on the device (kernels/scan_grid.py), into fields sized once. The points and their
-    covariance rows land in fields the caller names (a BatchGicp's source pool), so a scan
-    reaches registration without a host round trip.
+    time on the device (kernels/scan_grid.py, which takes the grid as one `ti.template()`),
+    into fields sized once. The points and their covariance rows land in a source pool the
+    caller names (a BatchGicp's), so a scan reaches registration without a host round trip.
 
     Differences from the host functions: voxel points come in order of first occurrence
     instead of sorted by voxel, deskewing interpolates the motion between 64 knots, and the
@@ -153,12 +153,12 @@ class ScanGrid:
     a search that always widens toward exact k nearest (ATE 0.8 vs 1.9 cm).
     """
 
+    _data_oriented = True  # passed to kernels as one ti.template() (see gicp_state)
+
     def __init__(self, max_points: int = 1 << 17, max_voxels: int = 1 << 16):
         if max_points < 1 or max_voxels < 1:
             raise ConfigError("ScanGrid needs max_points and max_voxels >= 1")
         self.runtime = ensure_runtime()
-        import taichi as ti
-
         self.max_points, self.max_voxels = max_points, max_voxels
         slots = 1 << (2 * max_voxels - 1).bit_length()  # at most half full: probing ends
         self.stage_p = ti.Vector.field(3, ti.f32, max_points)
@@ -179,21 +179,22 @@ class ScanGrid:
         self.knot_R = ti.Matrix.field(3, 3, ti.f32, DESKEW_KNOTS)
         self.knot_t = ti.Vector.field(3, ti.f32, DESKEW_KNOTS)
         self.slot_brick.fill(-1)
+        self.min_neighbors = MIN_NEIGHBORS  # constants of the kernels' plane_rows
+        self.normal_variance = PLANE_EIGENVALUES[0]
         self.num_voxels = 0
         self.voxel_size_m = 0.0
 
-    def downsample(self, points: np.ndarray, voxel_size_m: float, out_pts,
+    def downsample(self, points: np.ndarray, voxel_size_m: float, out: SourcePool,
                    times_s: np.ndarray | None = None, twist: np.ndarray | None = None,
-                   min_range_m: float = 0.0, max_range_m: float = np.inf, out_rows=None,
+                   min_range_m: float = 0.0, max_range_m: float = np.inf,
                    k_neighbors: int = 10) -> int | None:
         """Voxel means of the points within [min_range_m, max_range_m] (NaN/inf dropped),
-        deskewed by `twist` over `times_s` when both are given (as `deskew`), into `out_pts`
-        (a vec3 field); returns their count, or None when they do not fit (more voxels than
-        `max_voxels` or the field), so the caller takes the host path. With `out_rows`, also
-        their `covariances` (k_neighbors) in the same launch."""
-        from mcl3d.kernels import scan_grid
-
-        if out_rows is not None and not MIN_NEIGHBORS <= k_neighbors <= scan_grid.MAX_K:
+        deskewed by `twist` over `times_s` when both are given (as `deskew`), into
+        `out.points`; returns their count, or None when they do not fit (more voxels than
+        `max_voxels` or the pool), so the caller takes the host path. When the pool has
+        covariance rows, also their plane rows (`estimate_covariances`, k_neighbors) in the same
+        launch."""
+        if out.has_cov_rows and not MIN_NEIGHBORS <= k_neighbors <= scan_grid.MAX_K:
             raise ConfigError(f"k_neighbors must be in {MIN_NEIGHBORS}..{scan_grid.MAX_K} on "
                               f"the device, got {k_neighbors}")
         pts = np.asarray(points, dtype=np.float64)
@@ -229,13 +230,8 @@ class ScanGrid:
                 chunk.reshape(-1, 3) if n else np.zeros((1, 3), np.float32),
                 times[start:start + n] if use_deskew else times, n, int(start == 0),
                 int(start == starts[-1]), int(use_deskew), *tw.tolist(), t_first, t_step,
-                min_range_m, max_range, voxel_size_m, self.knot_R, self.knot_t, self.stage_p,
-                self.stage_key, self.stage_ok, self.slot_key, self.slot_brick, self.brick_slot,
-                self.cells, self.occupancy, self.voxel_key, self.voxel_sum, self.voxel_count,
-                self.counts, out_pts, out_rows is not None, k_neighbors, MIN_NEIGHBORS,
-                PLANE_EIGENVALUES[0], self.brick_head, self.brick_tail, self.voxel_next,
-                self.voxel_next if out_rows is None else out_rows)
-        if count < 0 or count > min(self.max_voxels, out_pts.shape[0]):
+                min_range_m, max_range, voxel_size_m, k_neighbors, self, out)
+        if count < 0 or count > min(self.max_voxels, out.points.shape[0]):
             self.num_voxels = 0
             return None
         self.num_voxels = count
@@ -249,13 +245,11 @@ def plane_rows_to_covs(rows: np.ndarray) -> np.ndarray:
         n[:, None, :]
 
 
-def download_rows(pts, rows, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """(points (n, 3), rows (n, 6)) as float64 from a point field and a covariance-row field."""
-    from mcl3d.kernels import scan_grid
-
+def download_rows(pool: SourcePool, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(points (n, 3), covariance rows (n, 6)) as float64: the first n of a source pool."""
     out = np.empty((max(n, 1), 9), np.float32)
     if n:
-        scan_grid.download_rows(n, pts, rows, out)
+        scan_grid.download_rows(n, pool, out)
     out = out[:n].astype(np.float64)
     return out[:, :3], out[:, 3:]
 

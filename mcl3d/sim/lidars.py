@@ -21,6 +21,7 @@ import numpy as np
 from pydantic import Field
 
 from mcl3d.core.config import Section
+from mcl3d.core.errors import ConfigError
 
 SENSORS = ("vlp16", "os0-64", "os1-64", "mid360")
 
@@ -131,8 +132,6 @@ class LivoxMid360(LidarModel):
 
 
 def make_lidar(name: str) -> LidarModel:
-    from mcl3d.core.errors import ConfigError
-
     if name == "vlp16":
         return SpinningLidar("vlp16", 0.015, 0.4, 100.0,
                              elevations_deg=(-15, 1, -13, 3, -11, 5, -9, 7, -7, 9, -5, 11, -3, 13,

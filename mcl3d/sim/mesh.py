@@ -79,9 +79,6 @@ class MeshBuilder:
                  [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]]
         self.add(corners, faces, reflectivity)
 
-    def quad(self, a, b, c, d, reflectivity: float) -> None:
-        self.add(np.array([a, b, c, d]), [[0, 1, 2], [0, 2, 3]], reflectivity)
-
     def prism(self, base_xy: np.ndarray, z0: float, z1: float, reflectivity: float,
               caps: bool = True) -> None:
         """Vertical prism over a convex polygon `base_xy` (K, 2) from z0 to z1."""

@@ -22,19 +22,32 @@ from mcl3d.core.config import Section
 from mcl3d.core.errors import ConfigError, RunInterrupted
 from mcl3d.core.geometry import rpy_to_rot, se3
 from mcl3d.core.outputs import check_writable
-from mcl3d.sim.imu import ImuConfig
-from mcl3d.sim.lidars import SENSORS, LidarConfig
-from mcl3d.sim.trajectories import TRAJECTORIES
-from mcl3d.sim.wheel_odometry import WheelOdometryConfig
-from mcl3d.sim.worlds import WORLDS
+from mcl3d.core.progress import Progress, ProgressCallback, report
+from mcl3d.io.logs.messages import Imu, Odometry, PointCloud, PoseStamped, Transform
+from mcl3d.io.logs.writer import LogWriter
+from mcl3d.io.trajectory import Trajectory, write_tum
+from mcl3d.sim.imu import ImuConfig, ImuSimulator
+from mcl3d.sim.lidars import SENSORS, LidarConfig, make_lidar
+from mcl3d.sim.mesh import sample_surface, write_mesh_ply, write_points_ply
+from mcl3d.sim.raycast import WorldCaster
+from mcl3d.sim.scan import simulate_scan
+from mcl3d.sim.trajectories import TRAJECTORIES, VALID, build_trajectory
+from mcl3d.sim.wheel_odometry import WheelOdometryConfig, WheelOdometrySimulator
+from mcl3d.sim.worlds import WORLDS, build_world
 
 TOPICS = {"points": "/lidar/points", "imu": "/imu/data", "odom": "/odom",
           "gt": "/ground_truth", "tf_static": "/tf_static"}
+# Salts of the random streams, so each noise source has its own stream for a given seed
+SCAN_NOISE_STREAM = 11  # with the scan index
+IMU_NOISE_STREAM = 12
+WHEEL_ODOMETRY_STREAM = 13
+MAP_SAMPLES_STREAM = 21
+SCAN_COUNT_TOLERANCE = 1e-9  # a duration this close to whole scans counts as whole
 
 
 class MapExportConfig(Section):
     point_spacing_m: float = Field(0.05, gt=0.001, description="mean spacing of the points "
-                                   "sampled on the surfaces for --export-map (m)")
+                                   "sampled on the surfaces for the exported map (m)")
 
 
 class WorldConfig(Section):
@@ -56,7 +69,7 @@ class WorldConfig(Section):
 
 
 class SimConfig(Section):
-    """Every simulation parameter; saved beside the log and loadable with --config."""
+    """Every simulation parameter; saved beside the log and loadable as a config file."""
 
     start_stamp_s: int = Field(1_700_000_000, ge=0, description="ROS time of the first scan (s)")
     world: WorldConfig = WorldConfig()
@@ -116,8 +129,6 @@ def sidecar(log: Path, suffix: str) -> Path:
 
 
 def _validate(req: SimulateRequest) -> None:
-    from mcl3d.sim.trajectories import VALID
-
     if req.world not in WORLDS:
         raise ConfigError(f"unknown world {req.world!r}; choose one of {', '.join(WORLDS)}")
     if req.sensor not in SENSORS:
@@ -129,65 +140,66 @@ def _validate(req: SimulateRequest) -> None:
         raise ConfigError(f"trajectory {req.trajectory!r} does not fit world {req.world!r}; "
                           f"choose one of {', '.join(VALID[req.world])}")
     if not np.isfinite(req.duration_s) or req.duration_s <= 0:
-        raise ConfigError(f"--duration must be > 0 seconds, got {req.duration_s:g}")
+        raise ConfigError(f"the duration must be > 0 seconds, got {req.duration_s:g}",
+                          setting="duration")
     if req.seed < 0:
-        raise ConfigError(f"--seed must be >= 0, got {req.seed}")
+        raise ConfigError(f"the seed must be >= 0, got {req.seed}", setting="seed")
 
 
 def output_paths(req: SimulateRequest) -> list[Path]:
     out = [req.output, sidecar(req.output, "gt.tum"), sidecar(req.output, "config.yaml")]
     out += [p for p in (req.export_mesh, req.export_map) if p is not None]
     if len({p.resolve() for p in out}) != len(out):
-        raise ConfigError("the log, its sidecars (_gt.tum, _config.yaml), --export-mesh and "
-                          "--export-map must all be different files")
+        raise ConfigError("the log, its sidecars (_gt.tum, _config.yaml), the exported mesh "
+                          "and the exported map must all be different files")
     return out
 
 
-def run(req: SimulateRequest, progress: bool = True) -> SimulateResult:
-    """Simulate and write everything `req` asks for; see the module docstring."""
-    from mcl3d.console import track
-    from mcl3d.sim.imu import ImuSimulator
-    from mcl3d.sim.lidars import make_lidar
-    from mcl3d.sim.raycast import WorldCaster
-    from mcl3d.sim.scan import simulate_scan
-    from mcl3d.sim.trajectories import build_trajectory
-    from mcl3d.sim.wheel_odometry import WheelOdometrySimulator
-    from mcl3d.sim.worlds import build_world
+def _scan_count(req: SimulateRequest, cfg: SimConfig) -> int:
+    period = 1.0 / cfg.lidar.rate_hz
+    n_scans = int(np.floor(req.duration_s / period + SCAN_COUNT_TOLERANCE))
+    if n_scans < 1:
+        raise ConfigError(f"a duration of {req.duration_s:g} s is shorter than one scan "
+                          f"({period:g} s at {cfg.lidar.rate_hz:g} Hz)", setting="duration")
+    return n_scans
 
+
+def run(request: SimulateRequest, on_progress: ProgressCallback | None = None
+        ) -> SimulateResult:
+    """Simulate and write everything `request` asks for; see the module docstring."""
+    req = request
     wall0 = time.perf_counter()
     _validate(req)
     cfg = cfgmod.load(SimConfig, req.config_path, req.overrides)
     outputs = output_paths(req)
     for path in outputs:
         check_writable(path, req.force)
+    n_scans = _scan_count(req, cfg)
     period = 1.0 / cfg.lidar.rate_hz
-    n_scans = int(np.floor(req.duration_s / period + 1e-9))
-    if n_scans < 1:
-        raise ConfigError(f"--duration {req.duration_s:g} s is shorter than one scan "
-                          f"({period:g} s at {cfg.lidar.rate_hz:g} Hz)")
 
     world = build_world(req.world, seed=req.seed, **cfg.world.sizes(req.world))
     traj = build_trajectory(world, req.trajectory, req.duration_s, seed=req.seed)
     lidar = make_lidar(req.sensor)
     caster = WorldCaster(world)
     T_base_lidar, T_base_imu = extrinsics(req.sensor)
-    imu = ImuSimulator(traj, T_base_imu, cfg.imu, np.random.default_rng([req.seed, 12]))
-    odom = WheelOdometrySimulator(traj, cfg.odometry, np.random.default_rng([req.seed, 13]))
+    imu = ImuSimulator(traj, T_base_imu, cfg.imu,
+                       np.random.default_rng([req.seed, IMU_NOISE_STREAM]))
+    odom = WheelOdometrySimulator(traj, cfg.odometry,
+                                  np.random.default_rng([req.seed, WHEEL_ODOMETRY_STREAM]))
     state = _Writing(req, cfg, traj, T_base_lidar, period)
 
-    scans = range(n_scans)
-    if progress:
-        scans = track(scans, n_scans, f"simulating {req.world}/{req.sensor}", "scans")
+    stage = f"simulating {req.world}/{req.sensor}"
     interrupted = False
     with state.open_log() as writer:
         state.write_static(writer, T_base_imu)
         try:
-            for k in scans:
-                rng = np.random.default_rng([req.seed, 11, k])
+            for k in range(n_scans):
+                rng = np.random.default_rng([req.seed, SCAN_NOISE_STREAM, k])
                 scan = simulate_scan(lidar, cfg.lidar, caster, traj, T_base_lidar, k, k * period,
                                      rng)
                 state.write_scan(writer, k, scan)
                 state.write_imu_odom(writer, imu, odom, k * period, (k + 1) * period)
+                report(on_progress, Progress(stage, k + 1, n_scans))
         except KeyboardInterrupt:
             interrupted = True
     state.write_sidecars()
@@ -196,8 +208,6 @@ def run(req: SimulateRequest, progress: bool = True) -> SimulateResult:
                              f"{req.output} and its ground truth hold the scans finished")
     map_points = None
     if req.export_mesh is not None:
-        from mcl3d.sim.mesh import write_mesh_ply
-
         write_mesh_ply(world.mesh_at(float(traj.cab_z_m(0.0)[0])), req.export_mesh)
     if req.export_map is not None:
         map_points = export_map(world, traj, cfg.map, req.seed, req.export_map)
@@ -211,11 +221,9 @@ def run(req: SimulateRequest, progress: bool = True) -> SimulateResult:
 
 def export_map(world, traj, cfg: MapExportConfig, seed: int, path: Path) -> int:
     """Sample the world's surfaces (cab at its start position) into a PLY point map."""
-    from mcl3d.sim.mesh import sample_surface, write_points_ply
-
     mesh = world.mesh_at(float(traj.cab_z_m(0.0)[0]))
     points, normals = sample_surface(mesh, 1.0 / cfg.point_spacing_m ** 2,
-                                     np.random.default_rng([seed, 21]))
+                                     np.random.default_rng([seed, MAP_SAMPLES_STREAM]))
     write_points_ply(points, normals, path)
     return len(points)
 
@@ -236,21 +244,15 @@ class _Writing:
     def ns(self, t_s: float) -> int:
         return self.start_ns + round(t_s * 1e9)
 
-    def open_log(self):
-        from mcl3d.io.logs.writer import LogWriter
-
+    def open_log(self) -> LogWriter:
         return LogWriter(self.req.output, force=self.req.force)
 
     def write_static(self, writer, T_base_imu) -> None:
-        from mcl3d.io.logs.messages import Transform
-
         writer.write_tf(TOPICS["tf_static"], [
             Transform(self.start_ns, "base_link", "lidar", self.T_base_lidar),
             Transform(self.start_ns, "base_link", "imu", T_base_imu)])
 
     def write_scan(self, writer, k: int, scan) -> None:
-        from mcl3d.io.logs.messages import PointCloud, PoseStamped
-
         t = k * self.period
         stamp = self.ns(t)
         writer.write_points(TOPICS["points"], PointCloud(
@@ -265,8 +267,6 @@ class _Writing:
 
     def write_imu_odom(self, writer, imu, odom, t0: float, t1: float) -> None:
         """IMU and odometry samples with stamps in [t0, t1), in time order."""
-        from mcl3d.io.logs.messages import Imu, Odometry
-
         imu_dt, odom_dt = 1.0 / self.cfg.imu.rate_hz, 1.0 / self.cfg.odometry.rate_hz
         imu_idx = np.arange(self._imu_next, int(np.ceil(t1 / imu_dt - 1e-9)))
         odom_idx = np.arange(self._odom_next, int(np.ceil(t1 / odom_dt - 1e-9)))
@@ -287,8 +287,6 @@ class _Writing:
         self.n_odom += len(t_odom)
 
     def write_sidecars(self) -> None:
-        from mcl3d.io.trajectory import Trajectory, write_tum
-
         write_tum(sidecar(self.req.output, "gt.tum"),
                   Trajectory(np.array(self.gt_stamps), np.array(self.gt_poses)))
         cfgmod.save(self.cfg, sidecar(self.req.output, "config.yaml"))

@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import open3d as o3d
 
 from mcl3d.sim.mesh import Mesh
 from mcl3d.sim.worlds import World
@@ -23,16 +24,13 @@ class Hits:
 
 class _Scene:
     def __init__(self, mesh: Mesh) -> None:
-        import open3d as o3d
-
-        self._o3d = o3d
         self.scene = o3d.t.geometry.RaycastingScene()
         self.scene.add_triangles(o3d.core.Tensor(mesh.vertices.astype(np.float32)),
                                  o3d.core.Tensor(mesh.triangles.astype(np.uint32)))
         self.reflectivity = mesh.reflectivity
 
     def cast(self, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        out = self.scene.cast_rays(self._o3d.core.Tensor(rays))
+        out = self.scene.cast_rays(o3d.core.Tensor(rays))
         t_hit = out["t_hit"].numpy()
         prim = out["primitive_ids"].numpy()
         normals = out["primitive_normals"].numpy()

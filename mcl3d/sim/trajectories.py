@@ -17,6 +17,7 @@ import itertools
 from dataclasses import dataclass
 
 import numpy as np
+import open3d as o3d
 from scipy.ndimage import gaussian_filter1d
 
 from mcl3d.core.errors import ConfigError
@@ -245,8 +246,6 @@ def _timed_path(waypoints: np.ndarray, style: _Style, t0: float, min_end_s: floa
 
 def _ground_height(world: World, xy: np.ndarray, z_ref: float) -> np.ndarray:
     """Height of the walkable surface below each xy point (ray cast down from z_ref + 2 m)."""
-    import open3d as o3d
-
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(world.ground.vertices.astype(np.float32)),
                         o3d.core.Tensor(world.ground.triangles.astype(np.uint32)))
@@ -316,8 +315,8 @@ def _elevator(world: World, duration_s: float, rng: np.random.Generator) -> SimT
                           *world.routes["loop"][::-1]])
     t3, xy3, h3 = _timed_path(exit_path, style, exit_start, duration_s + 1.0, closed=False)
     if ride_end + 2.0 > duration_s:
-        raise ConfigError(f"trajectory 'elevator' needs --duration >= {ride_end + 2.0:.0f} s "
-                          f"to finish the ride (got {duration_s:g} s)")
+        raise ConfigError(f"trajectory 'elevator' needs a duration >= {ride_end + 2.0:.0f} s "
+                          f"to finish the ride (got {duration_s:g} s)", setting="duration")
     yaw_in = h1[-1]
     yaw_out = yaw_in + np.pi
     h3 = h3 + np.round((yaw_out - h3[0]) / (2 * np.pi)) * 2 * np.pi
@@ -340,7 +339,8 @@ def _elevator(world: World, duration_s: float, rng: np.random.Generator) -> SimT
 def build_trajectory(world: World, kind: str, duration_s: float, seed: int = 0) -> SimTrajectory:
     """The trajectory `kind` through `world`, lasting `duration_s` seconds."""
     if not duration_s > 0:
-        raise ConfigError(f"--duration must be > 0 seconds, got {duration_s:g}")
+        raise ConfigError(f"the duration must be > 0 seconds, got {duration_s:g}",
+                          setting="duration")
     valid = VALID[world.name]
     if kind not in valid:
         raise ConfigError(f"trajectory {kind!r} does not fit world {world.name!r}; "

@@ -1,3 +1,4 @@
-"""Monte Carlo SLAM (the gradient-guided particle filter paper): particles that carry their
-own keyframe poses, GICP corrections, pruning, and the `slam` pipeline.
+"""Monte Carlo SLAM (the gradient-guided particle filter paper): its config sections, the
+filter (monte_carlo_slam) over particles that carry their own keyframe poses (particles), the
+elevator's vertical motion, and the `slam` pipeline with its summary.
 """

@@ -9,13 +9,19 @@ representative particle; keyframe poses only come back for one particle at a tim
 from __future__ import annotations
 
 import numpy as np
+import taichi as ti
 
 from mcl3d.core.errors import ConfigError
 from mcl3d.core.geometry import quat_to_rot, rot_to_quat, se3
+from mcl3d.kernels import slam as slam_kernels
+from mcl3d.kernels.slam import NEIGHBOURS
+from mcl3d.slam.slam_config import CorrectionConfig, LikelihoodConfig
 
 KEYFRAME_STEP = 8  # keyframe capacity grows in steps of this many
 DRIFT_SUMS = 5  # W, Σ w p (3), V: see SlamParticles.correct
 BYTES_PER_KEYFRAME_POSE = 24  # translation + quaternion vector part, f32
+COVARIANCE_JITTER = 1e-12  # added to a covariance's diagonal before factorizing it
+F32_MAX = 3e38  # "no limit" for a float32 kernel argument
 
 
 def unpack_poses(rows: np.ndarray) -> np.ndarray:
@@ -32,12 +38,8 @@ class SlamParticles:
     keyframe voxel maps, sized for 3 N groups)."""
 
     def __init__(self, n: int, max_keyframes: int, gicp, seed: int):
-        import taichi as ti
-
-        from mcl3d.kernels.slam import NEIGHBOURS
-
         if n < 1:
-            raise ConfigError(f"particles must be >= 1, got {n}")
+            raise ConfigError(f"particles must be >= 1, got {n}", setting="particles")
         self.n, self.max_keyframes, self.gicp, self.seed = n, max_keyframes, gicp, seed
         self.q_cur = ti.Vector.field(4, ti.f32, n)
         self.t_cur = ti.Vector.field(3, ti.f32, n)
@@ -68,47 +70,39 @@ class SlamParticles:
         return self.n * (self.keyframe_capacity * BYTES_PER_KEYFRAME_POSE + per_particle)
 
     def _reserve(self, num_keyframes: int) -> None:
-        import taichi as ti
-
-        from mcl3d.kernels import slam
-
         if num_keyframes <= self.keyframe_capacity:
             return
         cap = -(-num_keyframes // KEYFRAME_STEP) * KEYFRAME_STEP
         grown = ti.ndarray(ti.f32, (self.n, cap, 6))
-        slam.copy_keyframes(self.n, self.num_keyframes, self.kf, grown)
+        slam_kernels.copy_keyframes(self.n, self.num_keyframes, self.kf, grown)
         self.kf = grown
 
     # ---- filter steps ----
 
     def predict(self, T_prev_curr: np.ndarray, covariance: np.ndarray, step: int) -> None:
-        from mcl3d.kernels import slam
-
-        chol = np.linalg.cholesky(covariance + 1e-12 * np.eye(6)).astype(np.float32)
-        slam.predict(self.n, rot_to_quat(T_prev_curr[:3, :3]).astype(np.float32),
-                     T_prev_curr[:3, 3].astype(np.float32), chol, self.seed, step,
-                     self.q_cur, self.t_cur)
+        chol = np.linalg.cholesky(covariance + COVARIANCE_JITTER * np.eye(6)).astype(np.float32)
+        slam_kernels.predict(self.n, rot_to_quat(T_prev_curr[:3, :3]).astype(np.float32),
+                             T_prev_curr[:3, 3].astype(np.float32), chol, self.seed, step,
+                             self.q_cur, self.t_cur)
 
     def shift_vertical(self, shift: np.ndarray, up: np.ndarray, sigma_m: float,
                        step: int) -> None:
-        from mcl3d.kernels import slam
-
-        slam.shift_vertical(self.n, np.asarray(shift, np.float32), np.asarray(up, np.float32),
-                            sigma_m, self.seed, step, self.t_cur)
+        slam_kernels.shift_vertical(self.n, np.asarray(shift, np.float32),
+                                    np.asarray(up, np.float32), sigma_m, self.seed, step,
+                                    self.t_cur)
 
     def add_keyframe(self, travel_m: float, drift: np.ndarray, odom_position: np.ndarray
                      ) -> int:
         """Every particle's current pose becomes the pose of a new keyframe; returns its id.
         `drift` are the odometry's drift sums at this scan (see `correct`), `odom_position`
         its position."""
-        from mcl3d.kernels import slam
-
         k = self.num_keyframes
         if k >= self.max_keyframes:
             raise ConfigError(f"the run needs more than {self.max_keyframes} keyframes; raise "
-                              "slam.max_keyframes or slam.keyframe_overlap")
+                              "keyframes.capacity or lower keyframes.overlap in the SLAM "
+                              "config")
         self._reserve(k + 1)
-        slam.insert_keyframe(self.n, k, self.q_cur, self.t_cur, self.kf)
+        slam_kernels.insert_keyframe(self.n, k, self.q_cur, self.t_cur, self.kf)
         self.kf_travel[k] = travel_m
         for a, v in enumerate(np.r_[drift, odom_position]):
             self.kf_drift[k, a] = float(v)
@@ -121,82 +115,69 @@ class SlamParticles:
         """Neighbour keyframes of every particle (none more than `max_dz_m` along `up`);
         returns how many particles see a loop (a keyframe facing more than `max_facing_rad`
         away is a neighbour but not a loop)."""
-        from mcl3d.kernels import slam
-
         up = np.array([0.0, 0.0, 1.0]) if up is None else up
-        return int(slam.select_neighbours(self.n, self.num_keyframes, self.kf, self.q_cur,
-                                          self.t_cur, self.kf_travel, travel_m,
-                                          loop_min_travel_m, float(np.cos(max_facing_rad)),
-                                          np.asarray(up, np.float32), min(max_dz_m, 3e38),
-                                          self.nb, self.nb_loop))
+        return int(slam_kernels.select_neighbours(
+            self.n, self.num_keyframes, self.kf, self.q_cur, self.t_cur, self.kf_travel,
+            travel_m, loop_min_travel_m, float(np.cos(max_facing_rad)),
+            np.asarray(up, np.float32), min(max_dz_m, F32_MAX), self.nb, self.nb_loop))
 
     def _linearize(self, num_src: int, loop_only: bool) -> None:
         """One GICP linearization of every (particle, neighbour) row at the current poses."""
-        from mcl3d.kernels import slam
-        from mcl3d.kernels.slam import NEIGHBOURS
-
         g = self.gicp
-        slam.build_rows(self.n, self.kf, self.q_cur, self.t_cur, self.nb, self.nb_loop,
-                        int(loop_only), num_src, g.row_group, g.row_map, g.row_q, g.row_t,
-                        g.row_start, g.row_count, g.q_cand, g.t_cand)
+        slam_kernels.build_rows(self.n, self.kf, self.q_cur, self.t_cur, self.nb, self.nb_loop,
+                                int(loop_only), num_src, g.rows.group, g.rows.map, g.rows.q,
+                                g.rows.t, g.rows.start, g.rows.count, g.poses.q_cand,
+                                g.poses.t_cand)
         groups = self.n * NEIGHBOURS
         g.start(groups, groups, num_src, one_row_per_group=True)
         g.iterate(use_lm=False, chunk=num_src)  # whole rows: no atomics, reproducible
 
     def correct(self, travel_m: float, drift: np.ndarray, odom_position: np.ndarray,
-                num_src: int, min_inliers: int, max_rot_rad: float, max_trans_m: float,
-                settled_rad: float, settled_m: float) -> int:
+                num_src: int, cfg: CorrectionConfig) -> int:
         """One gradient-guided update of the looping particles and their keyframes (eq. 5-10);
         returns how many particles moved. `drift` are the odometry's drift sums now (W: the
         prediction's cumulative rotational variance, Σ w_j p_j, V: the translational one),
         by which the correction is spread over the keyframes."""
-        import taichi as ti
-
-        from mcl3d.kernels import slam
-
-        g = self.gicp
         self._linearize(num_src, loop_only=True)
-        slam.correct(self.n, self.nb_loop, g.best_H, g.best_b, g.best_n, min_inliers,
-                     max_rot_rad, max_trans_m, self.q_cur, self.t_cur, self.shift,
-                     self.corrected)
+        best = self.gicp.poses.best
+        slam_kernels.correct(self.n, self.nb_loop, best.H, best.b, best.n,
+                             cfg.min_inliers, np.deg2rad(cfg.max_step_deg), cfg.max_step_m,
+                             self.q_cur, self.t_cur, self.shift, self.corrected)
         d = ti.types.vector(DRIFT_SUMS, ti.f32)(*np.asarray(drift, np.float32))
-        slam.propagate(self.n, self.num_keyframes, self.kf, self.nb, self.kf_travel,
-                       self.kf_drift, d, ti.math.vec3(*np.asarray(odom_position, np.float32)),
-                       self.shift, self.corrected, self.fixed_travel, self.fixed_drift)
-        slam.mark_fixed(self.n, travel_m, d, self.corrected, self.shift, settled_rad, settled_m,
-                        self.fixed_travel, self.fixed_drift)
+        slam_kernels.propagate(self.n, self.num_keyframes, self.kf, self.nb, self.kf_travel,
+                               self.kf_drift, d,
+                               ti.math.vec3(*np.asarray(odom_position, np.float32)),
+                               self.shift, self.corrected, self.fixed_travel, self.fixed_drift)
+        slam_kernels.mark_fixed(self.n, travel_m, d, self.corrected, self.shift,
+                                np.deg2rad(cfg.settled_step_deg), cfg.settled_step_m,
+                                self.fixed_travel, self.fixed_drift)
         return int(self.corrected.to_numpy().sum())
 
-    def weigh(self, num_src: int, outlier_cost: float, points_weight: float) -> None:
+    def weigh(self, num_src: int, cfg: LikelihoodConfig) -> None:
         """Frame log-likelihood of every particle, added to its cumulative log weight."""
-        from mcl3d.kernels import slam
-
-        g = self.gicp
         self._linearize(num_src, loop_only=False)
-        slam.likelihood(self.n, num_src, self.nb, g.best_e, g.best_n, outlier_cost,
-                        points_weight, self.frame_ll, self.log_w)
+        best = self.gicp.poses.best
+        slam_kernels.likelihood(self.n, num_src, self.nb, best.e, best.n, cfg.outlier_cost,
+                                cfg.points_weight, self.frame_ll, self.log_w)
 
-    def refine(self, covariance: np.ndarray, min_inliers: int, max_rot_rad: float,
-               max_trans_m: float) -> int:
+    def refine(self, covariance: np.ndarray, cfg: CorrectionConfig) -> int:
         """One Gauss-Newton step of every particle without a loop toward its own neighbour
         keyframes, from the terms `weigh` linearized, with the prediction's `covariance` as
         the prior; returns how many moved."""
-        from mcl3d.kernels import slam
-
-        g = self.gicp
-        info = np.linalg.inv(covariance + 1e-12 * np.eye(6)).astype(np.float32)
-        return int(slam.refine(self.n, self.nb, self.nb_loop, g.best_H, g.best_b, g.best_n,
-                               min_inliers, info, max_rot_rad, max_trans_m, self.q_cur,
-                               self.t_cur))
+        info = np.linalg.inv(covariance + COVARIANCE_JITTER * np.eye(6)).astype(np.float32)
+        best = self.gicp.poses.best
+        return int(slam_kernels.refine(self.n, self.nb, self.nb_loop, best.H, best.b,
+                                       best.n, cfg.min_inliers, info,
+                                       np.deg2rad(cfg.max_step_deg), cfg.max_step_m,
+                                       self.q_cur, self.t_cur))
 
     def respawn(self, dead: np.ndarray, source: np.ndarray, log_w: np.ndarray) -> None:
         """Replace particles `dead` by copies of `source` and upload the new log weights."""
-        from mcl3d.kernels import slam
-
         if len(dead):
-            slam.respawn(len(dead), np.ascontiguousarray(dead, np.int32),
-                         np.ascontiguousarray(source, np.int32), self.num_keyframes,
-                         self.q_cur, self.t_cur, self.fixed_travel, self.fixed_drift, self.kf)
+            slam_kernels.respawn(len(dead), np.ascontiguousarray(dead, np.int32),
+                                 np.ascontiguousarray(source, np.int32), self.num_keyframes,
+                                 self.q_cur, self.t_cur, self.fixed_travel, self.fixed_drift,
+                                 self.kf)
         self.log_w.from_numpy(np.ascontiguousarray(log_w, np.float32))
 
     # ---- read back ----
@@ -215,10 +196,8 @@ class SlamParticles:
 
     def keyframe_poses(self, i: int) -> np.ndarray:
         """(K, 4, 4) keyframe poses of particle i."""
-        from mcl3d.kernels import slam
-
         K = self.num_keyframes
         out = np.zeros((max(K, 1), 6), np.float32)
         if K:
-            slam.gather_keyframes(i, K, self.kf, out)
+            slam_kernels.gather_keyframes(i, K, self.kf, out)
         return unpack_poses(out[:K])

@@ -1,21 +1,21 @@
 """`mcl3d slam LOG -o out/`: Monte Carlo SLAM over a whole log, written as trajectories, a
 map and a per-frame log.
 
-Steps: read the config, check the outputs, open the log, run `MonteCarloSlam.step` on every
-scan with the IMU samples since the previous one, then write the representative particle's
-trajectory (TUM, KITTI; every scan placed by its keyframes, so loop corrections show), the
-representative of each scan as it was chosen online, the odometry front-end's trajectory, the
-map (union of keyframe clouds, PLY), the per-frame log (CSV), the effective config and a
-summary (ATE of SLAM and of odometry alone against the log's ground truth). Optionally build
-a TSDF map from the result (`--tsdf`), so `slam` -> `localize` is one pipeline. Ctrl-C
-keeps everything done so far.
+Steps: check the outputs, open the log, run `MonteCarloSlam.step` on every scan with the IMU
+samples since the previous one, then write the representative particle's trajectory (TUM,
+KITTI; every scan placed by its keyframes, so loop corrections show), the representative of
+each scan as it was chosen online, the odometry front-end's trajectory, the map (union of
+keyframe clouds, PLY), the per-frame log (CSV), the effective config and a summary (ATE of
+SLAM and of odometry alone against the log's ground truth). Optionally build a TSDF map from
+the result, so `slam` -> `localize` is one pipeline. Ctrl-C keeps everything done so far.
+The contract: `run(request, on_progress=None)`.
 """
 
 from __future__ import annotations
 
 import csv
 import json
-from dataclasses import dataclass, field
+from dataclasses import astuple, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -23,56 +23,90 @@ import numpy as np
 from mcl3d.core import config as config_io
 from mcl3d.core.errors import Mcl3dError, RunInterrupted
 from mcl3d.core.outputs import atomic_open, check_writable, output_folder
+from mcl3d.core.progress import Progress, ProgressCallback, report
+from mcl3d.io.logs.reader import LogReader
 from mcl3d.io.trajectory import Trajectory, write_kitti, write_tum
-from mcl3d.slam.monte_carlo_slam import STAGES, MonteCarloSlam, SlamConfig, SlamFrame
+from mcl3d.mapping.pipeline import BuildMapRequest
+from mcl3d.mapping.pipeline import run as build_map
+from mcl3d.maps.build import BuildConfig
+from mcl3d.odometry.scan_feed import LidarImuFeed
+from mcl3d.registration.preprocess import voxel_downsample
+from mcl3d.slam.monte_carlo_slam import STAGES, MonteCarloSlam, SlamFrame
+from mcl3d.slam.slam_config import SlamConfig
+from mcl3d.slam.slam_summary import SlamSummary, summarize
 
-OUTPUT_NAMES = {"tum": "slam.tum", "kitti": "slam_kitti.txt", "online": "slam_online.tum",
-                "odometry": "odometry.tum", "map": "map.ply", "frames": "frames.csv",
-                "summary": "slam_summary.json", "config": "slam_config.yaml"}
+
+@dataclass(frozen=True)
+class SlamOutputs:
+    """The files one run writes, in its output folder."""
+
+    tum: Path
+    kitti: Path
+    online: Path
+    odometry: Path
+    map: Path
+    frames: Path
+    summary: Path
+    config: Path
+
+    @classmethod
+    def in_folder(cls, folder: Path) -> SlamOutputs:
+        return cls(tum=folder / "slam.tum", kitti=folder / "slam_kitti.txt",
+                   online=folder / "slam_online.tum", odometry=folder / "odometry.tum",
+                   map=folder / "map.ply", frames=folder / "frames.csv",
+                   summary=folder / "slam_summary.json", config=folder / "slam_config.yaml")
+
+    def all(self) -> list[Path]:
+        return list(astuple(self))
 
 
 @dataclass
 class SlamRequest:
+    """One SLAM run: the log, the output folder and how to run it."""
+
     log: Path
     output_dir: Path
-    config_path: Path | None = None
-    overrides: dict = field(default_factory=dict)
-    force: bool = False
-    points_topic: str | None = None
+    config: SlamConfig = field(default_factory=SlamConfig)
+    force: bool = False  # overwrite existing outputs
+    points_topic: str | None = None  # default: the only one in the log
     imu_topic: str | None = None
     gt_topic: str | None = None
-    max_scans: int | None = None
-    tsdf: Path | None = None
+    max_scans: int | None = None  # stop after this many scans
+    tsdf: Path | None = None  # also build a TSDF map here from the SLAM trajectory
+
+
+@dataclass(frozen=True)
+class TsdfBuild:
+    path: Path
+    scans: int
+    seconds: float
 
 
 @dataclass
 class SlamResult:
     frames: list[SlamFrame]
-    outputs: dict[str, Path]
-    summary: dict
+    outputs: SlamOutputs
+    summary: SlamSummary
+    tsdf: TsdfBuild | None = None
 
 
-def run(req: SlamRequest, progress: bool = True) -> SlamResult:
+def run(request: SlamRequest, on_progress: ProgressCallback | None = None) -> SlamResult:
     """Run SLAM over the log; the output folder is removed again if nothing was written."""
-    cfg = config_io.load(SlamConfig, req.config_path, req.overrides)
-    paths = {k: Path(req.output_dir) / name for k, name in OUTPUT_NAMES.items()}
-    if req.tsdf:
-        check_writable(req.tsdf, req.force)
-    with output_folder(req.output_dir):
-        for path in paths.values():
-            check_writable(path, req.force)
-        result = _run(req, cfg, paths, progress)
-    if req.tsdf:
-        result.summary["tsdf"] = _build_tsdf(req, paths["tum"])
+    outputs = SlamOutputs.in_folder(Path(request.output_dir))
+    if request.tsdf:
+        check_writable(request.tsdf, request.force)
+    with output_folder(request.output_dir):
+        for path in outputs.all():
+            check_writable(path, request.force)
+        result = _run(request, outputs, on_progress)
+    if request.tsdf:
+        result.tsdf = _build_tsdf(request, outputs.tum)
     return result
 
 
-def _run(req: SlamRequest, cfg: SlamConfig, paths: dict, progress: bool) -> SlamResult:
-    from mcl3d.console import track
-    from mcl3d.io.logs.reader import LogReader
-    from mcl3d.odometry.pipeline import lidar_imu_feed
-
-    gt_stamps, gt_poses, notes = [], [], []
+def _run(req: SlamRequest, outputs: SlamOutputs, on_progress: ProgressCallback | None
+         ) -> SlamResult:
+    cfg = req.config
     slam: MonteCarloSlam | None = None
     with LogReader(req.log, points_topic=req.points_topic, imu_topic=req.imu_topic,
                    gt_topic=req.gt_topic) as reader:
@@ -80,37 +114,32 @@ def _run(req: SlamRequest, cfg: SlamConfig, paths: dict, progress: bool) -> Slam
         total = reader.count("points") or None
         if req.max_scans is not None and total is not None:
             total = min(total, req.max_scans)
-        scans = lidar_imu_feed(reader, cfg.odometry.use_imu, gt_stamps, gt_poses, notes)
-        if progress:
-            scans = track(scans, total, "slam", "scans")
+        feed = LidarImuFeed(reader, cfg.odometry.use_imu)
         try:
-            for cloud, imu_rows, T_lidar_imu in scans:
+            for cloud, imu_rows, T_lidar_imu in feed:
                 if slam is None:
                     slam = MonteCarloSlam(cfg)
                 slam.odometry.T_lidar_imu = T_lidar_imu
                 slam.step(cloud.points, cloud.times_s, cloud.stamp_ns, imu_rows)
+                report(on_progress, Progress("slam", len(slam.frames), total))
                 if req.max_scans is not None and len(slam.frames) >= req.max_scans:
                     break
         except KeyboardInterrupt:
             if slam is not None and slam.frames:
-                _write(paths, slam, cfg, gt_stamps, gt_poses, notes, interrupted=True)
+                _write(outputs, slam, feed, interrupted=True)
             raise RunInterrupted(f"interrupted after {len(slam.frames) if slam else 0} scans; "
                                  f"the results so far are in {req.output_dir}") from None
     if slam is None or not slam.frames:
         raise Mcl3dError(f"{req.log}: the point-cloud topic has no scans")
-    summary = _write(paths, slam, cfg, gt_stamps, gt_poses, notes, interrupted=False)
-    return SlamResult(slam.frames, paths, summary)
+    summary = _write(outputs, slam, feed, interrupted=False)
+    return SlamResult(slam.frames, outputs, summary)
 
 
-def _build_tsdf(req: SlamRequest, trajectory: Path) -> dict:
+def _build_tsdf(req: SlamRequest, trajectory: Path) -> TsdfBuild:
     """The TSDF map of the log's scans placed by the SLAM trajectory (build-map's defaults)."""
-    from mcl3d.mapping.pipeline import BuildMapPipeline
-    from mcl3d.maps.build import BuildConfig
-
-    result = BuildMapPipeline(req.log, req.tsdf, BuildConfig(), trajectory=trajectory,
-                              force=req.force, points_topic=req.points_topic,
-                              progress=False).run()
-    return {"path": str(req.tsdf), "scans": result.n_scans, "seconds": result.seconds}
+    result = build_map(BuildMapRequest(req.log, req.tsdf, BuildConfig(), trajectory=trajectory,
+                                       force=req.force, points_topic=req.points_topic))
+    return TsdfBuild(req.tsdf, result.n_scans, result.seconds)
 
 
 def write_ply(path: Path, points: np.ndarray) -> None:
@@ -124,26 +153,24 @@ def write_ply(path: Path, points: np.ndarray) -> None:
         f.write(pts.tobytes())
 
 
-def _write(paths, slam: MonteCarloSlam, cfg: SlamConfig, gt_stamps, gt_poses, notes,
-           interrupted: bool) -> dict:
-    from mcl3d.registration.preprocess import voxel_downsample
-
+def _write(outputs: SlamOutputs, slam: MonteCarloSlam, feed: LidarImuFeed,
+           interrupted: bool) -> SlamSummary:
     frames = slam.frames
     stamps_ns, poses = slam.trajectory()
     stamps_s = stamps_ns * 1e-9
-    traj = Trajectory(stamps_s, poses)
-    online = Trajectory(stamps_s, np.stack([f.T_world_lidar for f in frames]))
-    odometry = Trajectory(stamps_s, np.stack([f.T_odom_lidar for f in frames]))
-    write_tum(paths["tum"], traj)
-    write_kitti(paths["kitti"], traj)
-    write_tum(paths["online"], online)
-    write_tum(paths["odometry"], odometry)
-    write_ply(paths["map"], voxel_downsample(slam.map_points(), cfg.scan_voxel_m))
-    _write_frames(paths["frames"], frames)
-    config_io.save(cfg, paths["config"])
-    summary = _summary(slam, traj, online, odometry, gt_stamps, gt_poses, notes, interrupted)
-    with atomic_open(paths["summary"], "w") as f:
-        json.dump(summary, f, indent=2)
+    trajectories = {"slam": Trajectory(stamps_s, poses),
+                    "online": Trajectory(stamps_s, np.stack([f.T_world_lidar for f in frames])),
+                    "odometry": Trajectory(stamps_s, np.stack([f.T_odom_lidar for f in frames]))}
+    write_tum(outputs.tum, trajectories["slam"])
+    write_kitti(outputs.kitti, trajectories["slam"])
+    write_tum(outputs.online, trajectories["online"])
+    write_tum(outputs.odometry, trajectories["odometry"])
+    write_ply(outputs.map, voxel_downsample(slam.map_points(), slam.cfg.front_end.scan_voxel_m))
+    _write_frames(outputs.frames, frames)
+    config_io.save(slam.cfg, outputs.config)
+    summary = summarize(slam, trajectories, feed.ground_truth(), feed.notes, interrupted)
+    with atomic_open(outputs.summary, "w") as f:
+        json.dump(summary.as_dict(), f, indent=2)
     return summary
 
 
@@ -160,51 +187,3 @@ def _write_frames(path: Path, frames: list[SlamFrame]) -> None:
                           fr.hypotheses, fr.looping, fr.corrected, fr.pruned, int(fr.keyframe),
                           fr.num_keyframes, int(fr.elevator), f"{fr.travel_m:.3f}",
                           *[f"{fr.timings_ms.get(s, 0.0):.2f}" for s in STAGES]])
-
-
-def _summary(slam: MonteCarloSlam, traj, online, odometry, gt_stamps, gt_poses, notes,
-             interrupted: bool) -> dict:
-    frames = slam.frames
-    steady = frames[3:] or frames  # the first scans include compiling each kernel
-    ms = {s: float(np.mean([f.timings_ms.get(s, 0.0) for f in steady])) for s in STAGES}
-    totals = np.array([sum(f.timings_ms.values()) for f in steady])
-    warnings = [f"scan {i}: {w}" for i, f in enumerate(frames) for w in f.odometry_warnings]
-    return {
-        "scans": len(frames), "interrupted": interrupted,
-        "particles": slam.cfg.particles, "keyframes": slam.particles.num_keyframes,
-        "path_length_m": odometry.path_length_m(),
-        "loop_frames": int(sum(f.looping > 0 for f in frames)),
-        "corrected_frames": int(sum(f.corrected > 0 for f in frames)),
-        "pruned_total": int(sum(f.pruned for f in frames)),
-        "elevator_frames": int(sum(f.elevator for f in frames)),
-        "final_hypotheses": frames[-1].hypotheses, "final_ess": frames[-1].ess,
-        "ms_per_frame": {"mean": float(totals.mean()), "median": float(np.median(totals)),
-                         "max": float(totals.max())},
-        "ms_per_stage": ms,
-        "particle_state_bytes": slam.particles.state_bytes(),
-        "notes": notes, "odometry_warnings": warnings[:100],
-        "num_odometry_warnings": len(warnings),
-        "evaluation": _evaluate({"slam": traj, "online": online, "odometry": odometry},
-                                gt_stamps, gt_poses),
-    }
-
-
-def _evaluate(trajectories: dict[str, Trajectory], gt_stamps, gt_poses) -> dict | None:
-    """ATE (SE(3)-aligned, as `evo_ape -a`) of each trajectory against the ground truth."""
-    from mcl3d.evaluation.metrics import evaluate
-    from mcl3d.odometry.pipeline import ground_truth
-
-    if len(gt_stamps) < 2:
-        return None
-    gt = ground_truth(gt_stamps, gt_poses)
-    out = {}
-    for name, est in trajectories.items():
-        if len(est) < 3:
-            return None
-        try:
-            ev = evaluate(gt, est, alignment="se3").as_dict()
-        except Mcl3dError as exc:
-            return {"error": str(exc)}
-        out[name] = {"ate_m": ev["ate"]["translation_m"]["rmse"],
-                     "ate_deg": ev["ate"]["rotation_deg"]["rmse"]}
-    return out

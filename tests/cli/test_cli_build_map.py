@@ -16,12 +16,14 @@ def _invoke(*args):
 
 
 def _failed(result) -> str:
-    """The error of a failed command: a typed Mcl3dError (the app prints it as one line)."""
+    """The error of a failed command: a typed Mcl3dError, as the app prints it in one line
+    (the message, then the flag of the setting that fixes it)."""
+    from mcl3d.cli import _with_flag
     from mcl3d.core.errors import Mcl3dError
 
     assert result.exit_code == 1, result.output
     assert isinstance(result.exception, Mcl3dError), repr(result.exception)
-    return str(result.exception)
+    return _with_flag(result.exception)
 
 
 @pytest.fixture(scope="module")
@@ -68,7 +70,7 @@ def test_build_from_mesh_then_map_info_and_exports(ti_runtime, room_files, tmp_p
     assert "mcl3d-tsdf v1" in info.output and '"kind": "mesh"' in info.output
     assert (tmp_path / "pts.pcd").stat().st_size > 1000
     again = _invoke("build-map", d / "room.ply", "-o", out)
-    assert "--force" in _failed(again)
+    assert "(--force)" in _failed(again)
 
 
 def test_build_from_point_cloud_with_f16(ti_runtime, room_files, tmp_path):
@@ -107,8 +109,34 @@ def test_build_from_log_with_ground_truth_and_trajectory(ti_runtime, room_files,
     bad_out = tmp_path / "bad.tsdf"
     bad = _invoke("build-map", log, "-o", bad_out, "--trajectory", short)
     message = _failed(bad)
-    assert "outside the trajectory" in message and "--trajectory" in message
+    assert "outside the trajectory" in message and "(--trajectory)" in message
     assert not bad_out.exists() and not list(tmp_path.glob(".bad.tsdf*"))
+
+
+def test_pipeline_reports_every_scan_and_returns_typed_results(ti_runtime, room_files,
+                                                               tmp_path):
+    """The library contract: run(request, on_progress) -> BuildMapResult, one Progress per
+    scan of a log."""
+    from mcl3d.mapping.pipeline import BuildMapRequest, run
+
+    _, scans = room_files
+    log = tmp_path / "room.mcap"
+    _write_log(log, scans, world.POSES, [STAMP0_NS + i * 100_000_000 for i in range(3)])
+    reports = []
+    result = run(BuildMapRequest(log, tmp_path / "lib.tsdf"), reports.append)
+    assert [(p.done, p.total) for p in reports] == [(1, 3), (2, 3), (3, 3)]
+    assert result.n_scans == 3 and result.source_kind == "log"
+    assert result.stats.blocks > 0
+    assert result.stats.file_bytes == (tmp_path / "lib.tsdf").stat().st_size
+    assert result.exports.mesh_triangles is None
+
+
+def test_too_small_a_capacity_names_the_flag(ti_runtime, room_files, tmp_path):
+    d, _ = room_files
+    result = _invoke("build-map", d / "room.ply", "-o", tmp_path / "m.tsdf",
+                     "--capacity-blocks", "1")
+    message = _failed(result)
+    assert "more than max_capacity_blocks 1" in message and message.endswith("(--capacity-blocks)")
 
 
 def test_bad_inputs_are_clear_errors(ti_runtime, room_files, tmp_path):

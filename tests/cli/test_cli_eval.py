@@ -116,9 +116,10 @@ def _write_bad_cases(folder: Path) -> None:
     ("seven.tum", [], r"seven\.tum: line 3 has 7 columns, TUM needs 8: t x y z qx qy qz qw"),
     ("late.tum", [], r"no stamps of .*late\.tum .* match .* within 0\.01 s.*--t-max-diff"),
     ("two.tum", ["--align", "se3"], r"Umeyama alignment needs at least 3 associated poses, got 2"),
-    ("est.tum", ["--json", "exists.json"], r"exists\.json already exists; pass --force"),
+    ("est.tum", ["--json", "exists.json"],
+     r"exists\.json already exists; allow overwriting it \(--force\)"),
     ("missing.tum", [], r"missing\.tum: trajectory file not found"),
-    ("est.tum", ["--plot", "fig.jpg"], r"--plot fig\.jpg: unknown image type \.jpg"),
+    ("est.tum", ["--plot", "fig.jpg"], r"fig\.jpg: unknown image type \.jpg.*\(--plot\)"),
 ])
 def test_bad_input_is_one_line_exit_1_and_leaves_no_output(files, est, extra, message):
     _write_bad_cases(files)

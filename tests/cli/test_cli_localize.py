@@ -8,7 +8,7 @@ from typer.testing import CliRunner
 
 localize_world = pytest.importorskip("support.localize_world")
 
-TIGHT = "0.05 0.05 0.02 0.01 0.01 0.02"
+TIGHT = "0.05 0.05 0.02 0.573 0.573 1.146"  # m, deg
 
 
 @pytest.fixture(scope="module")
@@ -53,8 +53,15 @@ def invoke(*args):
 
 
 def said(result) -> str:
-    """What the user sees: the output, or the typed error the app prints as one line."""
-    return result.output + ("" if result.exception is None else str(result.exception))
+    """What the user sees: the output, or the typed error the app prints as one line (with
+    the flag of the setting that fixes it)."""
+    from mcl3d.cli import _with_flag
+    from mcl3d.core.errors import Mcl3dError
+
+    exc = result.exception
+    if exc is None:
+        return result.output
+    return result.output + (_with_flag(exc) if isinstance(exc, Mcl3dError) else str(exc))
 
 
 def test_tracking_end_to_end(data, tmp_path):
@@ -101,7 +108,7 @@ def test_global_init_and_reproducible(data, tmp_path):
 def test_no_motion_source_and_empty_scan(data, tmp_path):
     out = tmp_path / "out"
     r = invoke("localize", data / "bare.mcap", "--map", data / "room.tsdf", "-o", out,
-               "--init", "6.1 2.8 0.8 0 0 1.5708", "--init-std", TIGHT, "--particles", 2000,
+               "--init", "6.1 2.8 0.8 0 0 90", "--init-std", TIGHT, "--particles", 2000,
                "--backend", "cpu")
     assert r.exit_code == 0, r.output
     summary = json.loads((out / "summary.json").read_text())
@@ -136,14 +143,14 @@ def test_global_init_in_a_map_of_another_place_says_so(data, tmp_path):
     assert "did not converge" in r.output
     summary = json.loads((out / "summary.json").read_text())
     assert summary["converged_at_scan"] is None and summary["final_state"] != "converged"
-    assert any("check --map" in w for w in summary["warnings"])
+    assert any("check the map" in w for w in summary["warnings"])
 
 
 def test_motion_source_asked_for_but_missing(data, tmp_path):
     r = invoke("localize", data / "bare.mcap", "--map", data / "room.tsdf", "-o",
                tmp_path / "o", "--init", "gt", "--motion", "odom", "--backend", "cpu")
     assert r.exit_code == 1
-    assert "--motion odom" in said(r) and "no odometry" in said(r)
+    assert "--motion" in said(r) and "no odometry" in said(r)
     assert not (tmp_path / "o").exists()
 
 
@@ -176,18 +183,18 @@ def test_bad_parameters(data, tmp_path, args, message):
 
 def test_interrupt_keeps_the_trajectory(data, tmp_path):
     from mcl3d.core.errors import RunInterrupted
-    from mcl3d.localization.pipeline import LocalizeConfig, run
+    from mcl3d.localization.pipeline import LocalizeConfig, LocalizeRequest, run
 
     cfg = LocalizeConfig.model_validate({"localizer": {"particles": 1000, "init": {
-        "mode": "gt", "std": [0.05, 0.05, 0.02, 0.01, 0.01, 0.02]}}})
+        "mode": "gt", "std": [0.05, 0.05, 0.02, 0.573, 0.573, 1.146]}}})
 
-    def stop_after_three(result, done, total):
-        if done == 3:
+    def stop_after_three(progress):
+        if progress.done == 3:
             raise KeyboardInterrupt
 
     with pytest.raises(RunInterrupted, match="after 3 scans"):
-        run(data / "room.mcap", data / "room.tsdf", tmp_path / "o", cfg, backend="cpu",
-            on_progress=stop_after_three)
+        run(LocalizeRequest(data / "room.mcap", data / "room.tsdf", tmp_path / "o", cfg,
+                            backend="cpu"), on_progress=stop_after_three)
     assert np.loadtxt(tmp_path / "o" / "trajectory.tum").shape == (3, 8)
 
 

@@ -28,7 +28,7 @@ def _umask():
 def test_existing_output_needs_force(tmp_path):
     path = tmp_path / "map.tsdf"
     path.write_text("x")
-    with pytest.raises(OutputExistsError, match="--force"):
+    with pytest.raises(OutputExistsError, match="allow overwriting"):
         check_writable(path, force=False)
     check_writable(path, force=True)
     with pytest.raises(OutputExistsError, match="does not exist"):

@@ -24,7 +24,7 @@ def test_unknown_backend_is_a_config_error():
 def test_missing_cuda_raises_instead_of_falling_back(monkeypatch):
     monkeypatch.setattr(runtime, "_start", lambda backend, *a: "x64")
     monkeypatch.setattr(runtime, "_current", None)
-    with pytest.raises(BackendUnavailable, match=r"cuda.*not available.*--backend cpu"):
+    with pytest.raises(BackendUnavailable, match=r"cuda.*not available.*cpu backend"):
         runtime.init("cuda")
 
 

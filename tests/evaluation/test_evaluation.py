@@ -225,7 +225,7 @@ def test_association_equals_evo_on_random_stamps():
 def test_no_overlapping_stamps_says_so():
     ref = drive(50)
     est = Trajectory(ref.stamps_s + 100.0, ref.poses)
-    with pytest.raises(TrajectoryError, match=r"no stamps of est\.tum .* match .*--t-max-diff"):
+    with pytest.raises(TrajectoryError, match=r"no stamps of est\.tum .*larger difference"):
         evaluate(ref, est, ref_name="ref.tum", est_name="est.tum")
 
 
@@ -234,7 +234,7 @@ def test_umeyama_needs_three_poses_that_are_not_on_a_line():
     with pytest.raises(TrajectoryError, match="at least 3 associated poses, got 2"):
         align(ref.poses[:2], ref.poses[:2], "se3")
     line = se3(np.repeat(np.eye(3)[None], 10, 0), np.outer(np.arange(10.0), [1.0, 2.0, 0.0]))
-    with pytest.raises(TrajectoryError, match=r"one line or point.*--align origin"):
+    with pytest.raises(TrajectoryError, match=r"one line or point.*origin"):
         align(line, line, "sim3")
     with pytest.raises(ConfigError, match="unknown alignment 'affine'"):
         align(line, line, "affine")
@@ -249,7 +249,7 @@ def test_rpe_rejects_impossible_deltas_and_empty_pair_lists():
         rpe(poses, poses, stamps, delta=0.0, unit="m")
     with pytest.raises(ConfigError, match="unknown RPE delta unit 's'"):
         rpe(poses, poses, stamps, delta=1.0, unit="s")
-    with pytest.raises(TrajectoryError, match=r"RPE delta 500 m gives no pose pairs.*lower"):
+    with pytest.raises(TrajectoryError, match=r"RPE delta 500 m gives no pose pairs.*smaller"):
         rpe(poses, poses, stamps, delta=500.0, unit="m")
 
 

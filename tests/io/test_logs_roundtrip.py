@@ -143,7 +143,7 @@ def test_writer_is_atomic_and_refuses_to_overwrite(tmp_path):
     assert list(tmp_path.iterdir()) == []
     with LogWriter(path) as w:
         w.write_pose("/ground_truth", PoseStamped(1, "map", np.eye(4)))
-    with pytest.raises(OutputExistsError, match="--force"):
+    with pytest.raises(OutputExistsError, match="allow overwriting"):
         LogWriter(path)
     with LogWriter(path, force=True) as w:
         w.write_pose("/gt", PoseStamped(2, "map", np.eye(4)))

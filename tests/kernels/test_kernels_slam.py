@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 
 from mcl3d.core import geometry
-from mcl3d.slam.monte_carlo_slam import SlamConfig, prune_plan
+from mcl3d.slam.monte_carlo_slam import prune_plan
 from mcl3d.slam.particles import unpack_poses
+from mcl3d.slam.slam_config import PruningConfig
 
 
 def random_poses(rng, n, spread=5.0):
@@ -345,7 +346,7 @@ def test_likelihood_matches_numpy(ti_runtime):
 
 
 def test_prune_plan_keeps_the_living_and_splits_weights():
-    cfg = SlamConfig(prune_posterior=1e-3, prune_likelihood_ratio=1e-6)
+    cfg = PruningConfig(posterior=1e-3, likelihood_ratio=1e-6)
     log_w = np.log(np.array([0.5, 0.3, 0.1999, 1e-5, 1e-4]))
     frame_ll = np.array([0.0, -1.0, -20.0, 0.0, 0.0])  # particle 2: frame likelihood too low
     dead, sources, lw = prune_plan(log_w, frame_ll, cfg, np.random.default_rng(0))
@@ -360,7 +361,7 @@ def test_prune_plan_keeps_the_living_and_splits_weights():
 
 
 def test_prune_plan_never_kills_every_particle():
-    cfg = SlamConfig(prune_likelihood_ratio=0.5)
+    cfg = PruningConfig(likelihood_ratio=0.5)
     dead, sources, _ = prune_plan(np.zeros(3), np.array([-5.0, -5.0, -5.0]) - [0, 1, 2], cfg,
                                   np.random.default_rng(0))
     assert 0 not in dead and set(sources) == {0}

@@ -18,7 +18,7 @@ TRACK_DURATION_S = 5.0
 TRACK_RANGE_M = 10.0  # scan points farther than this are dropped: they would leave the crop
 TRACK_BOX_M = ((-1.0, -1.0, -1.0), (17.0, 21.0, 4.0))  # covers the route's first 5 s + range
 KIDNAP_DURATION_S = 8.0  # the kidnapping happens at half the duration
-TIGHT_STD = [0.05, 0.05, 0.02, 0.01, 0.01, 0.02]
+TIGHT_STD = [0.05, 0.05, 0.02, *np.degrees([0.01, 0.01, 0.02]).tolist()]  # m, deg
 
 
 def _clip(poly: list[np.ndarray], axis: int, value: float, keep_below: bool) -> list:
@@ -81,7 +81,7 @@ def _simulate(path, trajectory: str, duration_s: float) -> None:
     from mcl3d.sim.pipeline import SimulateRequest, run
 
     run(SimulateRequest(world="office", sensor="vlp16", trajectory=trajectory,
-                        duration_s=duration_s, seed=SEED, output=path), progress=False)
+                        duration_s=duration_s, seed=SEED, output=path))
 
 
 @pytest.fixture(scope="session")
@@ -115,11 +115,11 @@ def office_kidnap(tmp_path_factory):
 
 def _localize(log, map_path, out, overrides: dict):
     from mcl3d.core import config
-    from mcl3d.localization.pipeline import LocalizeConfig, run
+    from mcl3d.localization.pipeline import LocalizeConfig, LocalizeRequest, run
 
     cfg = config.build(LocalizeConfig, {"localizer": {
         "seed": SEED, "init": {"mode": "gt", "std": TIGHT_STD}, **overrides}}, "test")
-    return run(log, map_path, out, cfg, backend="cpu")
+    return run(LocalizeRequest(log, map_path, out, cfg, backend="cpu"))
 
 
 def _errors(results, gt) -> tuple[np.ndarray, np.ndarray]:
@@ -144,7 +144,7 @@ def test_tracking_on_a_clean_log_is_accurate_and_never_diverges(office_ground, t
     assert d.max() < 0.15 and a.max() < 2.0, (d.max(), a.max())  # never diverges
     assert not any(r.state == "lost" for r in out.results)
     assert out.results[-1].state == "converged"
-    rmse = out.summary["ate_all"]["translation_rmse_m"]
+    rmse = out.summary.ate_all.translation_rmse_m
     assert rmse <= 0.06, rmse  # the bound for 5 cm voxels
     assert rmse == pytest.approx(float(np.sqrt(np.mean(d**2))), abs=1e-6)
 

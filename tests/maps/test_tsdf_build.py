@@ -101,7 +101,7 @@ def test_fused_surface_agrees_with_open3d_within_one_voxel(ti_runtime, room, sca
     import taichi as ti
 
     from mcl3d.core.geometry import se3_inverse
-    from mcl3d.kernels import tsdf as k
+    from mcl3d.kernels import tsdf_lookup as k
 
     tsdf = _fuse(room, scans)
     voxel, trunc_vox = tsdf.voxel_size_m, tsdf.truncation_m / tsdf.voxel_size_m
@@ -236,7 +236,7 @@ def test_deskewing_uses_each_points_pose(ti_runtime, room, scans):
 def _at(tsdf, pts):
     import taichi as ti
 
-    from mcl3d.kernels import tsdf as k
+    from mcl3d.kernels import tsdf_lookup as k
 
     @ti.kernel
     def query(m: ti.template(), p: ti.types.ndarray(dtype=ti.math.vec3, ndim=1),

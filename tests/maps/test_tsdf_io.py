@@ -59,7 +59,7 @@ def test_existing_output_is_not_overwritten_without_force(ti_runtime, tmp_path):
 
     path = tmp_path / "m.tsdf"
     path.write_text("keep me")
-    with pytest.raises(OutputExistsError, match="--force"):
+    with pytest.raises(OutputExistsError, match="allow overwriting"):
         check_writable(path, force=False)
     assert path.read_text() == "keep me"
 

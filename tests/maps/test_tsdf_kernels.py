@@ -154,7 +154,7 @@ def test_fusion_of_a_ray_and_a_scan_line_matches_numpy(ti_runtime):
     kernels compile once per map)."""
     import taichi as ti
 
-    from mcl3d.kernels import tsdf as k
+    from mcl3d.kernels import tsdf_fusion
     from mcl3d.maps.free_space import HostMap
 
     tsdf = _map(dims=(6, 4, 3), capacity=64, voxel=0.1, trunc=0.3, origin=(-0.8, -0.8, -0.8))
@@ -167,10 +167,10 @@ def test_fusion_of_a_ray_and_a_scan_line_matches_numpy(ti_runtime):
     t = ti.math.vec3(*origin)
     alpha = np.zeros(1, np.float32)
     rays = _ray_buffers(1)
-    k.scan_allocate(tsdf, pts, np.zeros_like(pts), alpha, 1, q, t, q, t, 0.1, 100.0, 0.0,
-                    behind, False, *rays, 64, 1)
+    tsdf_fusion.scan_allocate(tsdf, pts, np.zeros_like(pts), alpha, 1, q, t, q, t, 0.1, 100.0,
+                              0.0, behind, False, *rays, 64, 1)
     tsdf.init_new_blocks(0, tsdf.requested_blocks)
-    k.scan_fuse(tsdf, *rays, alpha, 1, t, t, 0.0, behind, True, sigma, 64, 1)
+    tsdf_fusion.scan_fuse(tsdf, *rays, alpha, 1, t, t, 0.0, behind, True, sigma, 64, 1)
     band, free_hits, blocks, free_blocks = _ray_reference(origin, point, tsdf, behind, sigma)
     data, got = _pool_sums(tsdf)
     assert {tuple(c) for c in data.coords} == blocks
@@ -200,7 +200,7 @@ def _check_scan_line(tsdf):
     sensor (rays 1-3, 5, 6 not at all, ray 4 from 2.5 m on): fewer hits, the same band."""
     import taichi as ti
 
-    from mcl3d.kernels import tsdf as k
+    from mcl3d.kernels import tsdf_fusion
 
     origin = np.array([0.013, -0.021, 0.017])
     c = np.array([2.05, 0.55, 0.35])  # a voxel centre
@@ -226,10 +226,10 @@ def _check_scan_line(tsdf):
         all_hits = free_hits
         tsdf.clear()
         tsdf.as_sums = True
-        k.scan_allocate(tsdf, *args, spacing, behind, False, *rays, run_length, threads)
+        tsdf_fusion.scan_allocate(tsdf, *args, spacing, behind, False, *rays, run_length, threads)
         tsdf.init_new_blocks(0, tsdf.requested_blocks)
-        k.scan_fuse(tsdf, *rays, alpha, len(pts), t, t, spacing, behind, True, sigma,
-                    run_length, threads)
+        tsdf_fusion.scan_fuse(tsdf, *rays, alpha, len(pts), t, t, spacing, behind, True,
+                              sigma, run_length, threads)
         data, got = _pool_sums(tsdf)
         assert {tuple(b) for b in data.coords} == blocks
         assert {tuple(b) for b in data.free_coords} == free_blocks
@@ -278,7 +278,7 @@ def _trilinear_reference(host, p):
 def test_queries_match_numpy(ti_runtime):
     import taichi as ti
 
-    from mcl3d.kernels import tsdf as k
+    from mcl3d.kernels import tsdf_lookup as k
     from mcl3d.maps.free_space import HostMap
 
     tsdf = _query_map()
@@ -318,7 +318,7 @@ def test_queries_match_numpy(ti_runtime):
 def test_gradient_is_the_derivative_of_trilinear(ti_runtime):
     import taichi as ti
 
-    from mcl3d.kernels import tsdf as k
+    from mcl3d.kernels import tsdf_lookup as k
 
     tsdf = _query_map()
 
@@ -353,7 +353,7 @@ def test_band_weight_exp_matches_numpy(ti_runtime):
     -87, flushed to tiny values below."""
     import taichi as ti
 
-    from mcl3d.kernels.tsdf import exp_nonpositive
+    from mcl3d.kernels.tsdf_band import exp_nonpositive
 
     @ti.kernel
     def run(x: ti.types.ndarray(dtype=ti.f32, ndim=1), out: ti.types.ndarray(dtype=ti.f32,

@@ -55,7 +55,7 @@ def test_real_scans_lie_on_the_zero_level_set_of_the_real_map(ti_runtime, ouster
     import open3d as o3d
     import taichi as ti
 
-    from mcl3d.kernels import tsdf as k
+    from mcl3d.kernels import tsdf_lookup as k
     from mcl3d.maps.build import BuildConfig, build_from_points
 
     d, clouds, poses = ouster

@@ -450,8 +450,8 @@ def test_initial_poses_upload_as_matrices_on_every_quaternion_branch(problem):
                  so3_exp([0.1, 3.0, -0.2]), so3_exp([0.2, -0.1, 3.0])]
     poses = np.stack([se3(R, [1.0, -2.0, 0.5 * g]) for g, R in enumerate(rotations)])
     gicp.set_problem(poses, row_group=np.arange(4), row_map=np.zeros(4), T_left=poses[::-1])
-    np.testing.assert_allclose(gicp.q_cand.to_numpy()[:4], rot_to_quat(poses[:, :3, :3]),
+    np.testing.assert_allclose(gicp.poses.q_cand.to_numpy()[:4], rot_to_quat(poses[:, :3, :3]),
                                atol=1e-6)
-    np.testing.assert_allclose(gicp.t_cand.to_numpy()[:4], poses[:, :3, 3], atol=1e-6)
-    np.testing.assert_allclose(gicp.row_q.to_numpy()[:4], rot_to_quat(poses[::-1, :3, :3]),
+    np.testing.assert_allclose(gicp.poses.t_cand.to_numpy()[:4], poses[:, :3, 3], atol=1e-6)
+    np.testing.assert_allclose(gicp.rows.q.to_numpy()[:4], rot_to_quat(poses[::-1, :3, :3]),
                                atol=1e-6)

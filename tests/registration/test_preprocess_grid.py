@@ -8,6 +8,7 @@ import pytest
 from support.scan_lines import scan_lines
 
 from mcl3d.core.errors import ConfigError, PointCloudError
+from mcl3d.registration.gicp_state import SourcePool
 from mcl3d.registration.preprocess import (
     ScanGrid,
     deskew,
@@ -19,20 +20,17 @@ from mcl3d.registration.preprocess import (
 
 @pytest.fixture
 def grid(ti_runtime):
-    import taichi as ti
-
     g = ScanGrid(max_points=256, max_voxels=2048)  # 256: several chunks per cloud
-    g.out_pts = ti.Vector.field(3, ti.f32, 2048)
-    g.out_rows = ti.Vector.field(6, ti.f32, 2048)
+    g.out = SourcePool(2048)
+    g.out_points = SourcePool(2048, with_cov_rows=False)
     return g
 
 
 def run(grid, points, voxel_m, k=10, **kw):
-    n = grid.downsample(points, voxel_m, grid.out_pts, out_rows=grid.out_rows, k_neighbors=k,
-                        **kw)
+    n = grid.downsample(points, voxel_m, grid.out, k_neighbors=k, **kw)
     if n is None:
         return None, None
-    return download_rows(grid.out_pts, grid.out_rows, n)
+    return download_rows(grid.out, n)
 
 
 def by_voxel(points, voxel_m):
@@ -112,18 +110,16 @@ def test_covariances_match_numpy_on_surfaces_and_sparse_points(grid):
 
 
 def test_too_many_voxels_give_none_and_bad_parameters_raise(grid, ti_runtime):
-    import taichi as ti
-
     pts = np.random.default_rng(3).uniform(-50, 50, (4000, 3))
-    assert grid.downsample(pts, 0.05, grid.out_pts) is None  # more voxels than max_voxels
-    small = ti.Vector.field(3, ti.f32, 10)
+    assert grid.downsample(pts, 0.05, grid.out_points) is None  # more voxels than max_voxels
+    small = SourcePool(10, with_cov_rows=False)
     assert grid.downsample(pts[:100], 0.05, small) is None  # more than the output holds
     with pytest.raises(ConfigError, match="voxel_size_m"):
-        grid.downsample(pts, 0.0, grid.out_pts)
-    assert grid.downsample(pts[:100], 0.05, small, out_rows=grid.out_rows) is None
+        grid.downsample(pts, 0.0, grid.out_points)
+    assert grid.downsample(pts[:100], 0.05, SourcePool(10)) is None
     with pytest.raises(ConfigError, match="k_neighbors"):
-        grid.downsample(pts, 0.2, grid.out_pts, out_rows=grid.out_rows, k_neighbors=40)
+        grid.downsample(pts, 0.2, grid.out, k_neighbors=40)
     with pytest.raises(PointCloudError, match="twist"):
-        grid.downsample(pts, 0.2, grid.out_pts, times_s=np.zeros(len(pts)), twist=np.zeros(5))
-    n = grid.downsample(np.zeros((0, 3)), 0.5, grid.out_pts)
+        grid.downsample(pts, 0.2, grid.out_points, times_s=np.zeros(len(pts)), twist=np.zeros(5))
+    n = grid.downsample(np.zeros((0, 3)), 0.5, grid.out_points)
     assert n == 0

@@ -13,9 +13,8 @@ pytestmark = pytest.mark.vulkan
 
 def _run(backend):
     """Downsample and covariances of a small deskewed cloud (several chunks) on `backend`."""
-    import taichi as ti
-
     from mcl3d.core import runtime
+    from mcl3d.registration.gicp_state import SourcePool
     from mcl3d.registration.preprocess import ScanGrid, download_rows
 
     runtime.init(backend)
@@ -25,11 +24,10 @@ def _run(backend):
     pts = np.vstack([wall, floor]) + 0.002 * rng.normal(size=(1000, 3)) + 0.0137
     times = np.linspace(0.0, 0.1, len(pts))
     grid = ScanGrid(max_points=256, max_voxels=2048)
-    out_pts = ti.Vector.field(3, ti.f32, 2048)
-    out_rows = ti.Vector.field(6, ti.f32, 2048)
-    n = grid.downsample(pts, 0.2, out_pts, times, np.array([0.0, 0.0, 0.3, 0.5, 0.0, 0.0]),
-                        out_rows=out_rows, k_neighbors=10)
-    return download_rows(out_pts, out_rows, n)
+    out = SourcePool(2048)
+    n = grid.downsample(pts, 0.2, out, times, np.array([0.0, 0.0, 0.3, 0.5, 0.0, 0.0]),
+                        k_neighbors=10)
+    return download_rows(out, n)
 
 
 def test_scan_grid_on_cpu_and_vulkan_agree(on_vulkan):
@@ -45,14 +43,13 @@ def test_scan_grid_on_cpu_and_vulkan_agree(on_vulkan):
 
 
 def _count_voxels(backend, pts):
-    import taichi as ti
-
     from mcl3d.core import runtime
+    from mcl3d.registration.gicp_state import SourcePool
     from mcl3d.registration.preprocess import ScanGrid
 
     runtime.init(backend)
     grid = ScanGrid(max_points=1 << 17, max_voxels=1 << 17)
-    return grid.downsample(pts, 0.25, ti.Vector.field(3, ti.f32, 1 << 17))
+    return grid.downsample(pts, 0.25, SourcePool(1 << 17, with_cov_rows=False))
 
 
 def test_a_real_sized_scan_keeps_every_voxel_on_vulkan(on_vulkan):

@@ -68,7 +68,7 @@ def _scans_against_mesh(tmp_path, world, sensor, trajectory, duration_s, overrid
 
     log, mesh = tmp_path / "s.mcap", tmp_path / "world.ply"
     run(SimulateRequest(world, sensor, trajectory, duration_s, 3, log, export_mesh=mesh,
-                        overrides=overrides or {}), progress=False)
+                        overrides=overrides or {}))
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.t.io.read_triangle_mesh(str(mesh)))
     with LogReader(log) as reader:
@@ -112,7 +112,7 @@ def test_field_of_view_crop_and_range_limits(tmp_path):
     log = tmp_path / "crop.mcap"
     run(SimulateRequest("forest", "mid360", "ground", 0.2, 0, log,
                         overrides={"lidar.azimuth_fov_deg": [-90, 90],
-                                   "lidar.max_range_m": 15.0}), progress=False)
+                                   "lidar.max_range_m": 15.0}))
     with LogReader(log) as reader:
         cloud = next(iter(reader.scans()))
     assert len(cloud) > 1000

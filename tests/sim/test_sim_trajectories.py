@@ -152,7 +152,7 @@ def test_elevator_rides_one_floor_with_no_horizontal_motion_and_odometry_does_no
 
 
 def test_elevator_needs_a_long_enough_duration():
-    with pytest.raises(ConfigError, match=r"elevator.*--duration"):
+    with pytest.raises(ConfigError, match=r"elevator.*duration"):
         build_trajectory(world("building"), "elevator", 5.0)
 
 

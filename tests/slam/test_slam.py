@@ -7,6 +7,7 @@ from typer.testing import CliRunner
 
 from mcl3d.cli import app
 from mcl3d.core import geometry
+from mcl3d.slam.slam_config import CorrectionConfig
 
 
 def room_cloud(rng) -> np.ndarray:
@@ -66,11 +67,12 @@ def test_loop_closure_pulls_the_current_pose_and_bends_the_keyframes(ti_runtime)
     p.t_cur.from_numpy(est_cur[None, :3, 3].astype(np.float32))
 
     assert p.select_neighbours(24.0, 10.0) == 1
+    step = CorrectionConfig(min_inliers=30, max_step_deg=5.0, max_step_m=1.0,
+                            settled_step_deg=0.2, settled_step_m=0.02)
     nb = p.nb.to_numpy()[0]
     assert 0 in nb
     for _ in range(4):
-        p.correct(24.0, drift[-1], est_cur[:3, 3], len(src), 30, np.deg2rad(5.0), 1.0,
-                  np.deg2rad(0.2), 0.02)
+        p.correct(24.0, drift[-1], est_cur[:3, 3], len(src), step)
         p.select_neighbours(24.0, 10.0)
     cur = p.current_poses()[0]
     before = np.linalg.norm(est_cur[:3, 3] - true_cur[:3, 3])
@@ -180,8 +182,9 @@ def test_slam_survives_a_gap_and_a_stationary_start(forest_log, ti_runtime):
     scans repeat the first one (the robot stands still): the trajectory stays on track."""
     from mcl3d.io.logs.reader import LogReader
     from mcl3d.io.trajectory import read_tum
-    from mcl3d.odometry.pipeline import _scans_with_imu
-    from mcl3d.slam.monte_carlo_slam import MonteCarloSlam, SlamConfig
+    from mcl3d.odometry.scan_feed import scans_with_imu
+    from mcl3d.slam.monte_carlo_slam import MonteCarloSlam
+    from mcl3d.slam.slam_config import SlamConfig
 
     gt = read_tum(forest_log.with_name(forest_log.stem + "_gt.tum"))
     slam = MonteCarloSlam(SlamConfig(particles=100, seed=1))
@@ -189,7 +192,7 @@ def test_slam_survives_a_gap_and_a_stationary_start(forest_log, ti_runtime):
     with LogReader(forest_log) as reader:
         first = None
         imu_gap = []
-        for cloud, (imu, frame) in _scans_with_imu(reader, ["points", "imu"], [], [], []):
+        for cloud, imu, frame in scans_with_imu(reader, ("points", "imu"), [], []):
             if first is None:
                 first = cloud
                 slam.odometry.T_lidar_imu = reader.static_transform(cloud.frame_id, frame)
@@ -210,3 +213,23 @@ def test_slam_survives_a_gap_and_a_stationary_start(forest_log, ti_runtime):
     aligned = ref[0] @ geometry.se3_inverse(poses[0]) @ poses
     err = np.linalg.norm(aligned[:, :3, 3] - ref[:, :3, 3], axis=1)
     assert len(stamps) == 40 and err.max() < 0.25
+
+
+def test_slam_config_file_round_trips_in_its_sections(tmp_path):
+    """The saved slam_config.yaml loads back as the same config; a key outside its section
+    is named in the error."""
+    from mcl3d.core import config as config_io
+    from mcl3d.core.errors import ConfigError
+    from mcl3d.slam.slam_config import SlamConfig
+
+    cfg = config_io.load(SlamConfig, None, {"particles": 7, "front_end.fov_deg": 180.0,
+                                            "keyframes.capacity": 32})
+    path = tmp_path / "slam_config.yaml"
+    config_io.save(cfg, path)
+    assert config_io.load(SlamConfig, path) == cfg
+    assert cfg.front_end.fov_deg == 180.0 and cfg.keyframes.capacity == 32
+    path.write_text("fov_deg: 180\n")
+    with pytest.raises(ConfigError, match="fov_deg"):
+        config_io.load(SlamConfig, path)
+    with pytest.raises(ConfigError, match=r"keyframes\.voxel_m must be >= front_end"):
+        config_io.load(SlamConfig, None, {"keyframes.voxel_m": 0.1})

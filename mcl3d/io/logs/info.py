@@ -60,6 +60,7 @@ class LogInfo:
     end_ns: int | None
     topics: list[TopicSummary]
     selection: dict[str, str]  # kind -> chosen topic, "-" or why none
+    selection_settings: dict[str, str]  # kind -> the setting that resolves its problem
 
     @property
     def duration_s(self) -> float | None:
@@ -155,74 +156,16 @@ def log_info(path: Path, *, max_scans: int = MAX_SCANS, points_topic: str | None
             if first is not None and last is not None and last > first and (tinfo.count or 0) > 1:
                 summary.rate_hz = (tinfo.count - 1) * 1e9 / (last - first)
             topics.append(summary)
-        selection = {}
+        selection, settings = {}, {}
         for kind in KINDS:
             if kind in reader.problems:
-                selection[kind] = str(reader.problems[kind]).removeprefix(f"{path}: ")
+                problem = reader.problems[kind]
+                selection[kind] = str(problem).removeprefix(f"{path}: ")
+                if problem.setting is not None:
+                    settings[kind] = problem.setting
             else:
                 selection[kind] = reader.topics.get(kind) or "-"
         return LogInfo(path=path, format=src.format, profile=src.profile, library=src.library,
                        size_bytes=_size(path), start_ns=src.start_ns, end_ns=src.end_ns,
-                       topics=topics, selection=selection)
-
-
-def _iso(stamp_ns: int | None) -> str:
-    if stamp_ns is None:
-        return "-"
-    from datetime import datetime, timezone
-
-    when = datetime.fromtimestamp(stamp_ns // 1_000_000_000, tz=timezone.utc)
-    frac = stamp_ns % 1_000_000_000
-    return f"{when:%Y-%m-%dT%H:%M:%S}.{frac // 1_000_000:03d}Z ({stamp_ns * 1e-9:.3f} s)"
-
-
-def _cloud_table(topic: str, cloud: CloudInfo):
-    from mcl3d.console import summary_table
-
-    layout = (f"organized {cloud.height} x {cloud.width}" if cloud.organized
-              else f"unorganized, {cloud.width} points")
-    fields = " ".join(f"{n}:{t}" + (f"[{c}]" if c > 1 else "") for n, t, c in cloud.fields)
-    time_text = "none"
-    if cloud.time_field:
-        time_text = f"field {cloud.time_field!r}"
-        if cloud.time_span_s is not None:
-            time_text += f", spans {cloud.time_span_s * 1e3:.1f} ms"
-    plural = "s" if cloud.scans_decoded != 1 else ""
-    title = f"Point cloud {topic} (first {cloud.scans_decoded} scan{plural} decoded)"
-    return summary_table(title, [
-        ("layout", layout),
-        ("fields", fields),
-        ("valid points", f"min {cloud.valid_min}, mean {cloud.valid_mean:.0f}, "
-                         f"max {cloud.valid_max} (NaN/inf/zero points dropped)"),
-        ("per-point time", time_text),
-    ])
-
-
-def render(info: LogInfo):
-    """Rich tables: the log summary, its topics, and the topics mcl3d would use."""
-    from rich.table import Table
-
-    from mcl3d.console import summary_table
-
-    duration = f"{info.duration_s:.3f} s" if info.duration_s is not None else "-"
-    head = summary_table(f"Log {info.path}", [
-        ("format", f"{info.format}, profile {info.profile}"),
-        ("library", info.library),
-        ("size", f"{info.size_bytes / 1e6:.1f} MB"),
-        ("duration", duration),
-        ("start", _iso(info.start_ns)),
-        ("end", _iso(info.end_ns)),
-        ("messages", str(info.message_count)),
-    ])
-    topics = Table(title="Topics", title_justify="left")
-    for column in ("topic", "type", "count", "rate Hz", "frame"):
-        topics.add_column(column, overflow="fold",
-                          justify="right" if column in ("count", "rate Hz") else "left")
-    for t in info.topics:
-        topics.add_row(t.topic, rt.short_type(t.msgtype), "-" if t.count is None else str(t.count),
-                       "-" if t.rate_hz is None else f"{t.rate_hz:.1f}",
-                       ", ".join(t.frame_ids) or "-")
-    clouds = [_cloud_table(t.topic, t.cloud) for t in info.topics if t.cloud is not None]
-    chosen = summary_table("Topics mcl3d uses (--points-topic, --imu-topic, --odom-topic, "
-                           "--gt-topic override)", list(info.selection.items()))
-    return (head, topics, *clouds, chosen)
+                       topics=topics, selection=selection,
+                       selection_settings=settings)

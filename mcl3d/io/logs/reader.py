@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from mcl3d.core.errors import TopicError
+from mcl3d.core.geometry import se3_inverse
 from mcl3d.io.logs import ros_types as rt
 from mcl3d.io.logs.messages import PointCloud, Transform
 from mcl3d.io.logs.sources import TopicInfo, open_source
@@ -83,16 +84,17 @@ class LogReader:
 
     def _select(self, kind: str, explicit: str | None, chosen: dict) -> str | None:
         types = _KIND_TYPES[kind]
-        option = f"--{kind}-topic"
+        setting = f"{kind}_topic"
         if explicit is not None:
             info = self.all_topics.get(explicit)
             if info is None:
-                raise TopicError(f"{self.path}: topic {explicit} (from {option}) is not in the "
-                                 f"log; topics: {self._topic_list()}")
+                raise TopicError(f"{self.path}: {_KIND_WORDS[kind]} topic {explicit} is not in "
+                                 f"the log; topics: {self._topic_list()}", setting=setting)
             if info.msgtype not in types:
-                raise TopicError(f"{self.path}: topic {explicit} (from {option}) holds "
+                raise TopicError(f"{self.path}: {_KIND_WORDS[kind]} topic {explicit} holds "
                                  f"{rt.short_type(info.msgtype)}, not "
-                                 f"{' or '.join(rt.short_type(t) for t in types)}")
+                                 f"{' or '.join(rt.short_type(t) for t in types)}",
+                                 setting=setting)
             return explicit
         candidates = [t for t, i in self.all_topics.items() if i.msgtype in types]
         if kind == "gt":
@@ -105,7 +107,7 @@ class LogReader:
         if len(candidates) > 1:
             self.problems[kind] = TopicError(
                 f"{self.path}: {len(candidates)} {_KIND_WORDS[kind]} topics "
-                f"({', '.join(candidates)}); choose one with {option}")
+                f"({', '.join(candidates)}); choose one", setting=setting)
         return None
 
     def require(self, kind: str) -> str:
@@ -117,7 +119,7 @@ class LogReader:
         topic = self.topics.get(kind)
         if topic is None:
             raise TopicError(f"{self.path}: no {_KIND_WORDS[kind]} topic in the log (topics: "
-                             f"{self._topic_list()}); pass --{kind}-topic to choose one")
+                             f"{self._topic_list()}); choose one", setting=f"{kind}_topic")
         return topic
 
     # ---- reading ----
@@ -196,8 +198,6 @@ class LogReader:
 
     def static_transform(self, parent: str, child: str) -> np.ndarray:
         """T_parent_child composed from static transforms (either direction), or TopicError."""
-        from mcl3d.core.geometry import se3_inverse
-
         edges: dict[str, list[tuple[str, np.ndarray]]] = {}
         for tf in self.static_transforms():
             edges.setdefault(tf.parent_frame, []).append((tf.child_frame, tf.T_parent_child))

@@ -9,6 +9,7 @@ from __future__ import annotations
 from functools import cache
 
 import numpy as np
+from rosbags.typesys import Stores, get_typestore
 
 from mcl3d.core.geometry import se3_from_tq, tq_from_se3
 from mcl3d.io.logs import pointcloud2
@@ -39,8 +40,6 @@ def short_type(name: str) -> str:
 @cache
 def ros2_typestore():
     """The ROS 2 Humble type store: the definitions our writer embeds and serializes with."""
-    from rosbags.typesys import Stores, get_typestore
-
     return get_typestore(Stores.ROS2_HUMBLE)
 
 

@@ -13,6 +13,13 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import yaml
+from mcap.reader import NonSeekingReader, make_reader
+from mcap.records import Statistics
+from mcap.summary import Summary
+from rosbags.highlevel import AnyReader
+from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
+
 from mcl3d.core.errors import LogFormatError, Mcl3dError
 from mcl3d.io.logs.ros_types import normalize_type, ros2_typestore
 
@@ -70,8 +77,6 @@ class McapSource:
     """An MCAP file, read through its summary and chunk indexes (streamed chunk by chunk)."""
 
     def __init__(self, path: Path):
-        from mcap.reader import make_reader
-
         self.path = path
         self._file = open(path, "rb")  # noqa: SIM115 (closed by close())
         try:
@@ -113,10 +118,6 @@ class McapSource:
 
     def _scan_summary(self):
         """A log without a (complete) summary: one streaming pass to learn channels and counts."""
-        from mcap.reader import NonSeekingReader
-        from mcap.records import Statistics
-        from mcap.summary import Summary
-
         summary = Summary()
         stats = Statistics(message_count=0, schema_count=0, channel_count=0,
                            attachment_count=0, metadata_count=0, chunk_count=0,
@@ -145,8 +146,6 @@ class McapSource:
         return decode
 
     def _make_decoder(self, channel_id: int) -> Callable:
-        from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
-
         ch = self._channels[channel_id]
         schema = self._schemas.get(ch.schema_id)
         if schema is None:
@@ -206,8 +205,6 @@ class McapSource:
 
 def _bag2_storage(folder: Path) -> str:
     """The storage plugin a ROS 2 bag folder declares (sqlite3, mcap)."""
-    import yaml
-
     try:
         meta = yaml.safe_load((folder / "metadata.yaml").read_text())
         return str(meta["rosbag2_bagfile_information"]["storage_identifier"])
@@ -219,8 +216,6 @@ class RosbagsSource:
     """A ROS 1 .bag file or a ROS 2 bag folder, through rosbags' AnyReader."""
 
     def __init__(self, path: Path, kind: str):
-        from rosbags.highlevel import AnyReader
-
         self.path = path
         self.format = kind
         self.library = "-"

@@ -11,6 +11,9 @@ from __future__ import annotations
 import contextlib
 from pathlib import Path
 
+from mcap.writer import CompressionType
+from mcap.writer import Writer as McapWriter
+
 from mcl3d import __version__
 from mcl3d.core.errors import InputError
 from mcl3d.core.outputs import atomic_path, check_writable
@@ -33,9 +36,6 @@ class LogWriter:
         self._sequence: dict[str, int] = {}
 
     def __enter__(self) -> LogWriter:
-        from mcap.writer import CompressionType
-        from mcap.writer import Writer as McapWriter
-
         self._stack = contextlib.ExitStack()
         tmp = self._stack.enter_context(atomic_path(self.path))
         stream = self._stack.enter_context(open(tmp, "wb"))

@@ -1,0 +1,118 @@
+"""Free space along a scan's rays: blocks a ray crosses become FREE as a whole, voxels of
+allocated blocks count the rays that crossed them (see `tsdf_lookup` for the map)."""
+
+import taichi as ti
+
+from mcl3d.kernels.tsdf_lookup import BIG, BLOCK, FREE, UNKNOWN, in_grid, ivec3, vec3, world_to_grid
+
+
+@ti.func
+def accumulate_free(m: ti.template(), b: ti.i32, g: ivec3):
+    """Count a ray passing through voxel g of block b in front of its band (free space)."""
+    ti.atomic_add(m.free_hits[b, g[0] & 7, g[1] & 7, g[2] & 7], 1.0)
+
+
+@ti.func
+def lowest_bit(i: ti.i32) -> ti.i32:
+    """The largest power of two dividing i (2^20 for i = 0, every stride divides it)."""
+    b = 1 << 20
+    if i > 0:
+        b = ti.min(i & -i, b)
+    return b
+
+
+@ti.func
+def carve_ray(m: ti.template(), a: vec3, u: vec3, length: ti.f32, stop_after: ti.f32):
+    """Free space along a + s u, s in [0, length): unallocated blocks become FREE as a
+    whole, voxels of allocated blocks count a hit each, sampled a voxel apart; past
+    stop_after the walk ends in the first unallocated block it meets.
+
+    scan_fuse walks each ray backwards, from where it comes within truncation of its
+    surface toward the sensor, so a ray that need not carve near the sensor still counts
+    the voxels of the surface blocks it passes first. Runs of unallocated blocks are walked
+    block to block by a 3D DDA (per-axis ray parameters of the next block face, no
+    divisions or floors per block); on reaching an allocated block the ray resumes just
+    past its face.
+    """
+    vox = m.voxel_size_m
+    g0 = world_to_grid(m, a)  # the ray in voxel units: g0 + s * ug
+    ug = u * (1.0 / vox)
+    inv = vec3(0.0)  # ray parameter per voxel along each axis
+    edge = ivec3(0)  # 1: leaves a block through its upper face, 0: its lower face
+    step = ivec3(0)  # -1, 0, +1: how the block index changes along each axis
+    for k in ti.static(range(3)):
+        if u[k] > 1e-9:
+            inv[k] = 1.0 / ug[k]
+            edge[k] = 1
+            step[k] = 1
+        elif u[k] < -1e-9:
+            inv[k] = 1.0 / ug[k]
+            step[k] = -1
+    end = length  # shortened where the walk stops early
+    last = ivec3(-(1 << 30))
+    s = 0.0
+    while s < end:
+        g = ti.cast(ti.floor(g0 + s * ug), ti.i32)
+        if not in_grid(m, g):
+            s += BLOCK * vox
+        else:
+            bc = g >> 3
+            b = m.coarse[bc[0], bc[1], bc[2]]
+            if b >= 0:
+                if (g != last).any():
+                    accumulate_free(m, b, g)
+                    last = g
+                s += vox
+            elif s > stop_after:
+                end = s
+            else:
+                face = ti.cast((bc + edge) * BLOCK, ti.f32)
+                t = vec3(BIG)  # ray parameter of the block's exit face along each axis
+                for k in ti.static(range(3)):
+                    if step[k] != 0:
+                        t[k] = (face[k] - g0[k]) * inv[k]
+                while True:
+                    if b == UNKNOWN:
+                        m.coarse[bc[0], bc[1], bc[2]] = FREE
+                    axis = 0
+                    s_exit = t[0]
+                    if t[1] < s_exit:
+                        axis = 1
+                        s_exit = t[1]
+                    if t[2] < s_exit:
+                        axis = 2
+                        s_exit = t[2]
+                    s = ti.max(s_exit, s) + 1e-4
+                    if s >= end or s > stop_after:
+                        break
+                    for k in ti.static(range(3)):
+                        if axis == k:
+                            bc[k] += step[k]
+                            t[k] += BLOCK * ti.abs(inv[k])
+                    if not (0 <= bc[0] < m.coarse_dims[0] and 0 <= bc[1] < m.coarse_dims[1]
+                            and 0 <= bc[2] < m.coarse_dims[2]):
+                        break
+                    b = m.coarse[bc[0], bc[1], bc[2]]
+                    if b >= 0:
+                        break
+
+
+@ti.func
+def dense_range(m: ti.template(), spacing_rad: ti.f32) -> ti.f32:
+    """The range at which neighbouring rays are half a voxel apart (0 without a spacing)."""
+    s_dense = 0.0
+    if spacing_rad > 0.0:
+        s_dense = 0.5 * m.voxel_size_m / spacing_rad
+    return s_dense
+
+
+@ti.func
+def carve_in_front(m: ti.template(), i: ti.i32, o: vec3, u: vec3, r: ti.f32, c: ti.f32,
+                   s_dense: ti.f32):
+    """Carve ray i of a scan (sensor o, unit direction u, range r, |cos incidence| c) from
+    where it comes within truncation of its surface plane back toward the sensor. Near the
+    sensor only a subset of the rays carves: ray i counts voxels from s_dense / lowbit(i)
+    on and walks unallocated blocks from twice that on (see tsdf_fusion.scan_fuse)."""
+    s_free = r - m.truncation_m / c
+    s_voxels = s_dense / ti.cast(lowest_bit(i), ti.f32)
+    carve_ray(m, o + s_free * u, -u, s_free - s_voxels, s_free - 2.0 * s_voxels)

@@ -1,0 +1,294 @@
+"""The fusion kernels: a scan in two passes (scan_allocate, then scan_fuse: truncation
+bands + free-space carving), oriented points (points_allocate, points_fuse), and the end of
+a build, when the running sums become distances (finalize_blocks, refine_free_voxels,
+unmark_free_voxels). The map container is described in `tsdf_lookup`.
+"""
+
+import taichi as ti
+
+from mcl3d.kernels.se3 import quat_conj, quat_exp, quat_log, quat_mul, quat_normalize, quat_rotate
+from mcl3d.kernels.spread import spread_item, spread_length
+from mcl3d.kernels.tsdf_band import (
+    accumulate,
+    allocate_patch,
+    band_patch,
+    band_samples,
+    column_into_slots,
+    exp_nonpositive,
+    flush_slots,
+    footprint_steps,
+    max_band_samples,
+    tangent_basis,
+)
+from mcl3d.kernels.tsdf_blocks import allocate_block
+from mcl3d.kernels.tsdf_carve import carve_in_front, dense_range
+from mcl3d.kernels.tsdf_lookup import (
+    BLOCK,
+    UNKNOWN,
+    ivec3,
+    vec3,
+    vec4,
+    voxel_center,
+    voxel_dw,
+    world_to_grid,
+)
+
+
+# ----------------------------------------------------------------------------- scans
+@ti.func
+def scan_motion(q0: vec4, q1: vec4) -> vec3:
+    """Rotation vector from the scan's start to its end orientation (shortest way): the
+    part of slerp that is the same for every point, computed once per launch."""
+    q1s = q1
+    if q0.dot(q1) < 0.0:
+        q1s = -q1
+    return quat_log(quat_mul(quat_conj(q0), q1s))
+
+
+@ti.func
+def ray_setup(p_l: vec3, n_l: vec3, alpha: ti.f32, q0: vec4, t0: vec3, delta: vec3, t1: vec3,
+              use_normals: ti.template()):
+    """World point, sensor origin, ray direction, range, surface normal (facing the
+    sensor; the reversed ray without normals) and the |cos| of the incidence angle.
+
+    The pose is interpolated at the point's time (deskewing); a scan without motion skips
+    the slerp (the same q, bit for bit: its factor exp(0) is exactly the identity).
+    """
+    q = q0
+    if (delta != 0.0).any():
+        q = quat_mul(q0, quat_exp(alpha * delta))  # slerp, as pose_interpolate
+    q = quat_normalize(q)
+    t = t0 + alpha * (t1 - t0)
+    p = quat_rotate(q, p_l) + t
+    r = (p - t).norm()
+    u = (p - t) / ti.max(r, 1e-9)
+    nrm = -u
+    c = 1.0
+    if ti.static(use_normals):
+        nw = quat_rotate(q, n_l)
+        nn = nw.norm()
+        if nn > 0.5:
+            nw = nw / nn
+            if nw.dot(u) > 0.0:
+                nw = -nw
+            nrm = nw
+            c = ti.max(-nw.dot(u), 1e-3)
+    return p, t, u, r, nrm, c
+
+
+@ti.func
+def point_ok(p_l: vec3, min_range: ti.f32, max_range: ti.f32) -> bool:
+    r = p_l.norm()
+    return (r >= min_range) and (r <= max_range) and (r == r)
+
+
+@ti.kernel
+def scan_allocate(m: ti.template(), pts: ti.types.ndarray(dtype=vec3, ndim=1),
+                  nrm: ti.types.ndarray(dtype=vec3, ndim=1),
+                  alpha: ti.types.ndarray(dtype=ti.f32, ndim=1), n: ti.i32,
+                  q0: vec4, t0: vec3, q1: vec4, t1: vec3, min_range: ti.f32,
+                  max_range: ti.f32, spacing_rad: ti.f32, behind_m: ti.f32,
+                  use_normals: ti.template(), ray_p: ti.types.ndarray(dtype=vec4, ndim=1),
+                  ray_n: ti.types.ndarray(dtype=vec4, ndim=1), run_length: ti.i32,
+                  threads: ti.i32):
+    """Pass 1 of a scan: allocate the blocks that hold samples of each point's band patch
+    (exactly those scan_fuse visits), testing as few samples as that takes.
+
+    Each point's ray setup (deskewed world point, normal) is kept for pass 2, which would
+    otherwise repeat it: ray_p[i] = (world point, range), ray_n[i] = (normal facing the
+    sensor, |cos incidence|), the latter 0 for a point that is skipped (out of range).
+
+    Runs of run_length consecutive points are spread over the cpu threads (kernels.spread).
+    """
+    delta = scan_motion(q0, q1)
+    n_runs = (n + run_length - 1) // run_length
+    for index in range(spread_length(n_runs, threads)):
+        run = spread_item(index, n_runs, threads)
+        if run >= 0:
+            for i in range(run * run_length, ti.min(n, (run + 1) * run_length)):
+                ray_n[i] = vec4(0.0)
+                if point_ok(pts[i], min_range, max_range):
+                    p, _o, _u, r, nr, c = ray_setup(pts[i], nrm[i], alpha[i], q0, t0, delta,
+                                                    t1, use_normals)
+                    ray_p[i] = vec4(p, r)
+                    ray_n[i] = vec4(nr, c)
+                    allocate_patch(m, p, nr, footprint_steps(m, r, spacing_rad), behind_m)
+
+
+@ti.kernel
+def scan_fuse(m: ti.template(), ray_p: ti.types.ndarray(dtype=vec4, ndim=1),
+              ray_n: ti.types.ndarray(dtype=vec4, ndim=1),
+              alpha: ti.types.ndarray(dtype=ti.f32, ndim=1), n: ti.i32, t0: vec3, t1: vec3,
+              spacing_rad: ti.f32, behind_m: ti.f32, carve: ti.template(),
+              sigma_weight_m: ti.f32, run_length: ti.i32, threads: ti.i32):
+    """Pass 2 of a scan: the truncation band around each point + free-space carving, from
+    the rays that scan_allocate set up (ray_p, ray_n; t0, t1 and alpha give each ray's
+    sensor position).
+
+    Band: voxels on a patch of the point's tangent plane (half the gap to the next ray
+    wide, so sparse far rays leave no holes), from behind_m behind the surface to the
+    truncation in front, get the point-to-plane distance (projective distance along the
+    ray without normals), weighted by a Gaussian of their distance along the plane so each
+    voxel is dominated by the rays that hit next to it. Deeper voxels may be closer to the
+    far side of a thin solid, which no ray sees, so the band stops at behind_m.
+    Carving: between the sensor and the point where the ray comes within truncation of the
+    surface plane, blocks that hold no surface become FREE as a whole (the ray jumps block
+    to block) and voxels of allocated blocks count free-space hits; finalize_blocks uses
+    them only for voxels no band reached (a ray passing a voxel says it is free, not how
+    far the surface is). Near the sensor rays are far denser than voxels, so there only a
+    subset carves: ray i (in scan order) counts voxels from range s_dense / lowbit(i) on
+    (lowbit(i): the largest power of two dividing i) and walks unallocated blocks from 2x
+    that range on, where the rays that do are under one voxel, resp. two voxels apart
+    (the spacing of rays i, i + 2^k at range s is about 2^k * spacing_rad * s). Each ray
+    walks backwards, from its band toward the sensor, so its own surface blocks come first.
+
+    Near rays are denser than voxels (a one-column band, footprint_steps = 0), so
+    consecutive points of a scan line mostly hit the same voxels: one thread takes a run
+    of run_length consecutive points and sums their one-column bands in registers (slot j
+    holds depth sample j), writing a voxel's sums once, when the next point's sample j
+    leaves it. The sums are those of updating voxel by voxel, only added in another order,
+    so run_length changes no result beyond f32 rounding. Runs are spread over the cpu
+    threads as in scan_allocate.
+    """
+    k_w = -0.5 / (sigma_weight_m * sigma_weight_m)
+    n_s = band_samples(m, behind_m)
+    s_dense = dense_range(m, spacing_rad)
+    n_runs = (n + run_length - 1) // run_length
+    for index in range(spread_length(n_runs, threads)):
+        run = spread_item(index, n_runs, threads)
+        if run >= 0:
+            fuse_run(m, ray_p, ray_n, alpha, run * run_length,
+                     ti.min(n, (run + 1) * run_length), t0, t1, spacing_rad, behind_m, carve,
+                     k_w, n_s, s_dense)
+
+
+@ti.func
+def fuse_run(m: ti.template(), ray_p: ti.template(), ray_n: ti.template(),
+             alpha: ti.template(), first: ti.i32, end: ti.i32, t0: vec3, t1: vec3,
+             spacing_rad: ti.f32, behind_m: ti.f32, carve: ti.template(), k_w: ti.f32,
+             n_s: ti.i32, s_dense: ti.f32):
+    """One thread's run of points [first, end) of scan_fuse: each point carves its ray,
+    then fills its band, a patch straight into the map or, for a one-column band, the
+    run's slots (kept in registers until the run ends)."""
+    n_max = ti.static(max_band_samples(m))
+    slot_g = ti.Matrix.zero(ti.i32, n_max, 3)
+    slot_wd = ti.Vector.zero(ti.f32, n_max)
+    slot_w = ti.Vector.zero(ti.f32, n_max)
+    cb = ivec3(-(1 << 30))  # the block of the last flushed slot and its id
+    bid = UNKNOWN
+    for i in range(first, end):
+        c = ray_n[i][3]
+        if c > 0.0:
+            p = ray_p[i].xyz
+            r = ray_p[i][3]
+            nr = ray_n[i].xyz
+            o = t0 + alpha[i] * (t1 - t0)  # as ray_setup
+            u = (p - o) / ti.max(r, 1e-9)
+            if ti.static(carve):
+                carve_in_front(m, i, o, u, r, c, s_dense)
+            k = footprint_steps(m, r, spacing_rad)
+            if k > 0:
+                e1, e2 = tangent_basis(nr)
+                band_patch(m, p, nr, k, behind_m, k_w, e1, e2)
+            else:
+                column_into_slots(m, p, nr, behind_m, k_w, n_s, slot_g, slot_wd, slot_w, cb,
+                                  bid)
+    flush_slots(m, slot_g, slot_wd, slot_w)
+
+
+# ------------------------------------------------------------ points with normals
+@ti.kernel
+def points_allocate(m: ti.template(), pts: ti.types.ndarray(dtype=vec3, ndim=1), n: ti.i32,
+                    radius_vox: ti.i32):
+    """Allocate every block within radius_vox voxels (a cube) of each world point."""
+    for i in range(n):
+        g = ti.cast(ti.floor(world_to_grid(m, pts[i])), ti.i32)
+        lo = (g - radius_vox) >> 3
+        hi = (g + radius_vox) >> 3
+        for bx in range(lo[0], hi[0] + 1):
+            for by in range(lo[1], hi[1] + 1):
+                for bz in range(lo[2], hi[2] + 1):
+                    allocate_block(m, bx, by, bz)
+
+
+@ti.kernel
+def points_fuse(m: ti.template(), pts: ti.types.ndarray(dtype=vec3, ndim=1),
+                nrm: ti.types.ndarray(dtype=vec3, ndim=1), n: ti.i32, radius_vox: ti.i32,
+                sigma_weight_m: ti.f32, behind_m: ti.f32):
+    """Point-to-plane signed distance of each point's oriented plane into nearby voxels.
+
+    Voxels of the cube of radius_vox within truncation in front of the plane and behind_m
+    behind it get d = (v - p).n, weighted by a Gaussian of their distance to the point, so
+    the nearest points dominate each voxel.
+    """
+    trunc = m.truncation_m
+    k = -0.5 / (sigma_weight_m * sigma_weight_m)
+    for i, dx, dy, dz in ti.ndrange(n, (-radius_vox, radius_vox + 1),
+                                    (-radius_vox, radius_vox + 1),
+                                    (-radius_vox, radius_vox + 1)):
+        p = pts[i]
+        nr = nrm[i]
+        g = ti.cast(ti.floor(world_to_grid(m, p)), ti.i32) + ivec3(dx, dy, dz)
+        v = voxel_center(m, g) - p
+        d = v.dot(nr)
+        if -behind_m <= d <= trunc:
+            accumulate(m, g, d, exp_nonpositive(k * v.dot(v)))
+
+
+# ------------------------------------------------------------------- end of a build
+@ti.kernel
+def finalize_blocks(m: ti.template(), start: ti.i32, count: ti.i32):
+    """Build-time sums -> distances for blocks [start, start+count).
+
+    Voxels with band observations get their weighted mean distance; voxels only crossed by
+    rays become free (+truncation) with the negated number of crossings as weight, a mark
+    for `refine_free_voxels` (run next, then `unmark_free_voxels`).
+    """
+    for k, i, j, h in ti.ndrange(count, BLOCK, BLOCK, BLOCK):
+        b = start + k
+        w = ti.cast(m.weight[b, i, j, h], ti.f32)
+        d = m.truncation_m
+        if w > 0.0:
+            d = ti.math.clamp(ti.cast(m.sdf[b, i, j, h], ti.f32) / w,
+                              -m.truncation_m, m.truncation_m)
+        else:
+            w = -m.free_hits[b, i, j, h]
+        m.sdf[b, i, j, h] = ti.cast(d, m.sdf.dtype)
+        m.weight[b, i, j, h] = ti.cast(w, m.weight.dtype)
+        m.free_hits[b, i, j, h] = 0.0
+
+
+@ti.kernel
+def refine_free_voxels(m: ti.template(), start: ti.i32, count: ti.i32):
+    """Free-only voxels next to the band: distance bounded through band neighbours.
+
+    A ray crossing a voxel proves it free, not that the surface is a truncation away
+    (rays skim floors and pass edges). For a band voxel n at k steps along one of the 26
+    grid directions,
+    d(v) <= k * voxel + |d(n)| (triangle inequality), so the smallest such bound replaces
+    +truncation.
+    """
+    radius = ti.static(int(m.truncation_m / m.voxel_size_m + 0.999))
+    for k, i, j, h in ti.ndrange(count, BLOCK, BLOCK, BLOCK):
+        b = start + k
+        if m.weight[b, i, j, h] < 0.0:
+            g = m.block_coord[b] * BLOCK + ivec3(i, j, h)
+            best = m.truncation_m
+            for n in range(27):
+                e = ivec3(n // 9 - 1, (n // 3) % 3 - 1, n % 3 - 1)
+                length = ti.sqrt(ti.cast(e.dot(e), ti.f32))
+                if n != 13:
+                    for step in range(1, radius + 1):
+                        dw = voxel_dw(m, g + step * e)
+                        if dw[1] > 0.0:
+                            best = ti.min(best, step * length * m.voxel_size_m
+                                          + ti.abs(dw[0]))
+            m.sdf[b, i, j, h] = ti.cast(best, m.sdf.dtype)
+
+
+@ti.kernel
+def unmark_free_voxels(m: ti.template(), start: ti.i32, count: ti.i32):
+    for k, i, j, h in ti.ndrange(count, BLOCK, BLOCK, BLOCK):
+        b = start + k
+        m.weight[b, i, j, h] = ti.abs(m.weight[b, i, j, h])
+

@@ -1,0 +1,146 @@
+"""Reading a two-level TSDF inside other kernels: the map container, its constants, and the
+distance, weight and state of a voxel or a point (nearest, trilinear, gradient).
+
+Every TSDF kernel takes the map `m` as `ti.template()` (mcl3d.maps.tsdf.TsdfMap, compiled
+once per map: its geometry is baked in as constants), a data-oriented container holding
+
+- fields `coarse` (i32 [cx, cy, cz]: block id >= 0, or UNKNOWN / OVERFLOW / FREE),
+  `sdf`, `weight` (pool [capacity, 8, 8, 8], f32 or f16), `alloc_flag` (i32 like
+  `coarse`), `block_count` (i32 scalar), `block_coord` (ivec3 [capacity]), `block_free`
+  (i32 [capacity]) and, when `writable`, `free_hits` (f32 pool: rays that crossed a voxel
+  in front of their band);
+- constants `voxel_size_m`, `truncation_m`, `origin_m` (3 floats: the corner of voxel
+  (0, 0, 0)), `coarse_dims` (3 ints), `capacity`, `writable` (bool).
+
+Voxel (i, j, k) covers origin + [i, i+1) x [j, j+1) x [k, k+1) voxels; its value is the
+signed distance at its centre, positive in free space, clamped to +-truncation.
+
+While a map is being built the pool holds running sums (sdf = sum of w*d, weight = sum of
+w), so that rays and points fuse with atomic adds and no update is lost when several rays
+touch one voxel in the same launch; `tsdf_fusion.finalize_blocks` turns sums into distances
+once. The other TSDF modules: `tsdf_blocks` (allocation, block I/O), `tsdf_band` (a point's
+truncation band), `tsdf_carve` (free space along rays), `tsdf_fusion` (the fusion kernels).
+"""
+
+import taichi as ti
+
+BLOCK = 8
+UNKNOWN = -1  # never observed
+OVERFLOW = -2  # needed, but the pool was full
+FREE = -3  # observed, every voxel free (no surface within truncation)
+FREE_WEIGHT = 1.0  # the weight a query reports for a voxel of a FREE block
+
+STATE_UNKNOWN = 0
+STATE_OBSERVED = 1  # observed, near or behind a surface (d < truncation)
+STATE_FREE = 2  # observed, at least the truncation distance from any surface
+
+vec2 = ti.math.vec2
+vec3 = ti.math.vec3
+vec4 = ti.math.vec4
+ivec3 = ti.math.ivec3
+BIG = 1e30  # larger than any distance or ray parameter
+
+
+@ti.func
+def world_to_grid(m: ti.template(), p: vec3) -> vec3:
+    """Continuous voxel coordinates: voxel i spans [i, i+1)."""
+    o = vec3(m.origin_m[0], m.origin_m[1], m.origin_m[2])
+    return (p - o) * (1.0 / m.voxel_size_m)
+
+
+@ti.func
+def voxel_center(m: ti.template(), g: ivec3) -> vec3:
+    o = vec3(m.origin_m[0], m.origin_m[1], m.origin_m[2])
+    return o + (ti.cast(g, ti.f32) + 0.5) * m.voxel_size_m
+
+
+@ti.func
+def in_grid(m: ti.template(), g: ivec3) -> bool:
+    return (0 <= g[0] < m.coarse_dims[0] * BLOCK and 0 <= g[1] < m.coarse_dims[1] * BLOCK
+            and 0 <= g[2] < m.coarse_dims[2] * BLOCK)
+
+
+@ti.func
+def block_id(m: ti.template(), bc: ivec3) -> ti.i32:
+    """coarse[bc]: the pool id of block bc, or UNKNOWN outside the grid."""
+    b = UNKNOWN
+    if (0 <= bc[0] < m.coarse_dims[0] and 0 <= bc[1] < m.coarse_dims[1]
+            and 0 <= bc[2] < m.coarse_dims[2]):
+        b = m.coarse[bc[0], bc[1], bc[2]]
+    return b
+
+
+@ti.func
+def voxel_dw(m: ti.template(), g: ivec3) -> vec2:
+    """(signed distance, weight) of voxel g; unknown and outside the map give (trunc, 0)."""
+    out = vec2(m.truncation_m, 0.0)
+    if in_grid(m, g):
+        b = m.coarse[g[0] >> 3, g[1] >> 3, g[2] >> 3]
+        if b >= 0:
+            out = vec2(ti.cast(m.sdf[b, g[0] & 7, g[1] & 7, g[2] & 7], ti.f32),
+                       ti.cast(m.weight[b, g[0] & 7, g[1] & 7, g[2] & 7], ti.f32))
+        elif b == FREE:
+            out = vec2(m.truncation_m, FREE_WEIGHT)
+    return out
+
+
+@ti.func
+def sdf_nearest(m: ti.template(), p: vec3) -> vec2:
+    """(d, w) of the voxel containing world point p (w = 0: unknown)."""
+    return voxel_dw(m, ti.cast(ti.floor(world_to_grid(m, p)), ti.i32))
+
+
+@ti.func
+def voxel_state(m: ti.template(), g: ivec3) -> ti.i32:
+    dw = voxel_dw(m, g)
+    state = STATE_UNKNOWN
+    if dw[1] > 0.0:
+        state = STATE_OBSERVED
+        if dw[0] >= m.truncation_m * 0.999:
+            state = STATE_FREE
+    return state
+
+
+@ti.func
+def state_at(m: ti.template(), p: vec3) -> ti.i32:
+    return voxel_state(m, ti.cast(ti.floor(world_to_grid(m, p)), ti.i32))
+
+
+@ti.func
+def sdf_trilinear(m: ti.template(), p: vec3) -> vec2:
+    """(d, w): d interpolated between the 8 surrounding voxel centres; w their smallest weight.
+
+    Unknown corners count as +truncation, so w = 0 flags a value that mixes in unknowns.
+    """
+    g = world_to_grid(m, p) - 0.5
+    i0 = ti.cast(ti.floor(g), ti.i32)
+    f = g - ti.cast(i0, ti.f32)
+    d = 0.0
+    w = BIG
+    for dx, dy, dz in ti.static(ti.ndrange(2, 2, 2)):
+        dw = voxel_dw(m, i0 + ivec3(dx, dy, dz))
+        c = ((f[0] if dx else 1.0 - f[0]) * (f[1] if dy else 1.0 - f[1])
+             * (f[2] if dz else 1.0 - f[2]))
+        d += c * dw[0]
+        w = ti.min(w, dw[1])
+    return vec2(d, w)
+
+
+@ti.func
+def sdf_trilinear_grad(m: ti.template(), p: vec3) -> vec4:
+    """(d, dd/dx, dd/dy, dd/dz) of the trilinear interpolant at p, gradient in 1/m units."""
+    g = world_to_grid(m, p) - 0.5
+    i0 = ti.cast(ti.floor(g), ti.i32)
+    f = g - ti.cast(i0, ti.f32)
+    out = vec4(0.0)
+    for dx, dy, dz in ti.static(ti.ndrange(2, 2, 2)):
+        v = voxel_dw(m, i0 + ivec3(dx, dy, dz))[0]
+        wx = f[0] if dx else 1.0 - f[0]
+        wy = f[1] if dy else 1.0 - f[1]
+        wz = f[2] if dz else 1.0 - f[2]
+        sx = 1.0 if dx else -1.0
+        sy = 1.0 if dy else -1.0
+        sz = 1.0 if dz else -1.0
+        out += v * vec4(wx * wy * wz, sx * wy * wz, wx * sy * wz, wx * wy * sz)
+    inv = 1.0 / m.voxel_size_m
+    return vec4(out[0], out[1] * inv, out[2] * inv, out[3] * inv)

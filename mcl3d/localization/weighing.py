@@ -1,0 +1,109 @@
+"""The sensor model on the device: scores every particle against one scan.
+
+The map is read-only during localization, so the model is evaluated once per voxel into a
+code grid (1 KiB per map block, a quarter of an f32 map); an update looks codes up in a
+small log-likelihood table that depends on the sigma in use. A global search starts on a
+coarse distance field of the map instead (built on the first global initialization).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import taichi as ti
+
+from mcl3d.core import runtime
+from mcl3d.kernels import likelihood as kl
+from mcl3d.localization import sensor_model
+from mcl3d.localization.particle_set import ParticleSet
+from mcl3d.localization.sensor_model import (
+    BLOCK,
+    SensorModelConfig,
+    coarse_match_codes,
+    coarse_table,
+    code_table,
+    spatial_order,
+)
+
+LOCALITY_RANGE_M = 5.0  # yaw cells of the visiting order: one map cell at this range
+
+
+class ScanWeigher:
+    """Device fields of the sensor model, allocated once; `upload_scan` then one of
+    `scan_likelihood` / `coarse_likelihood` adds a scan's log-likelihood to each particle."""
+
+    def __init__(self, tsdf, cfg: SensorModelConfig, capacity: int):
+        self.tsdf = tsdf
+        self.cfg = cfg
+        self.cache_block = cfg.cache_block
+        if self.cache_block == "auto":
+            info = runtime.current()
+            self.cache_block = info is not None and info.backend != "cpu"
+        self.cache_block = bool(self.cache_block)
+        self._points = ti.Vector.field(3, ti.f32, shape=cfg.points)
+        self._points_host = np.zeros((cfg.points, 3), np.float32)
+        self._keys = ti.field(ti.i32, shape=capacity)
+        self._order = ti.field(ti.i32, shape=capacity)
+        self._order_host = np.zeros(capacity, np.int32)
+        self._table = ti.field(ti.f32, shape=kl.N_CODES)
+        self._coarse_table = ti.field(ti.f32, shape=kl.COARSE_BINS + 2)
+        self._table_sigma: float | None = None
+        self._codes = ti.field(ti.i32, shape=(tsdf.capacity + 2, kl.BLOCK, kl.BLOCK,
+                                              kl.WORDS_Z))
+        self._slots = ti.field(ti.i32, shape=tsdf.coarse_dims)
+        kl.build_codes(tsdf, self._codes, tsdf.n_blocks, cfg.match_dist_m)
+        kl.build_slots(tsdf, self._slots)
+        self._coarse = None  # the coarse search field on the device, once built
+        self._coarse_host: sensor_model.CoarseField | None = None
+
+    def set_sigma(self, sigma_m: float) -> bool:
+        """Use the hit term with `sigma_m`; True when it changed (log-likelihoods change
+        scale with sigma)."""
+        if sigma_m == self._table_sigma:
+            return False
+        self._table.from_numpy(code_table(self.cfg, self.tsdf.truncation_m, sigma_m))
+        self._table_sigma = sigma_m
+        return True
+
+    def build_coarse(self) -> None:
+        """The coarse distance field of the map, once (the first global search)."""
+        if self._coarse is not None:
+            return
+        host = sensor_model.coarse_field(self.tsdf, self.cfg)
+        self._coarse = ti.field(ti.i32, shape=host.codes.shape)
+        self._coarse.from_numpy(host.codes)
+        self._coarse_host = host
+
+    def upload_scan(self, pts: np.ndarray) -> None:
+        """The reduced scan to the device, in Morton order of map blocks."""
+        m = len(pts)
+        self._points_host[:m] = pts[spatial_order(pts, self.tsdf.voxel_size_m * BLOCK)]
+        self._points_host[m:] = 0.0
+        self._points.from_numpy(self._points_host)
+
+    def _sort_by_pose_cell(self, p: ParticleSet, cell_m: float) -> None:
+        """Visit the particles sorted by pose cell (a point 5 m away moves about a voxel
+        from one cell to the next) so that consecutive ones read the same map blocks."""
+        kl.locality_keys(p.pos, p.quat, p.n, cell_m, cell_m / LOCALITY_RANGE_M, self._keys)
+        keys = self._keys.to_numpy()[:p.n].astype(np.uint16)
+        self._order_host[:p.n] = np.argsort(keys, kind="stable")
+        self._order.from_numpy(self._order_host)
+
+    def scan_likelihood(self, p: ParticleSet, n_points: int, cache_block: bool) -> None:
+        """Adds the tempered log-likelihood of the uploaded scan to every log-weight."""
+        self._sort_by_pose_cell(p, self.tsdf.voxel_size_m)
+        kl.scan_log_likelihood(self.tsdf, self._codes, self._slots, self._order, p.pos, p.quat,
+                               p.n, self._points, n_points, self._table,
+                               self.cfg.tempering(n_points), p.log_w, p.match, p.ll_mean,
+                               cache_block)
+
+    def coarse_likelihood(self, p: ParticleSet, n_points: int, sigma_m: float) -> None:
+        """Like scan_likelihood, with the coarse search model at `sigma_m`."""
+        field = self._coarse_host
+        self._coarse_table.from_numpy(coarse_table(self.cfg, sigma_m))
+        self._sort_by_pose_cell(p, field.cell_m)
+        kl.coarse_scan_log_likelihood(self._coarse, ti.math.vec3(*field.origin_m),
+                                      1.0 / field.cell_m, self._order, p.pos, p.quat, p.n,
+                                      self._points, n_points, self._coarse_table,
+                                      coarse_match_codes(self.cfg),
+                                      self.cfg.tempering(n_points), p.log_w, p.match,
+                                      p.ll_mean)

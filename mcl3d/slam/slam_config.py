@@ -1,0 +1,137 @@
+"""The parameters of Monte Carlo SLAM, one section per step of the filter (as in the
+localizer's config). Lengths in metres, angles in degrees; each value converts to radians
+where it is used. Saved as slam_config.yaml beside a run's outputs and loadable with the
+`slam` command's config file."""
+
+from __future__ import annotations
+
+from pydantic import Field, model_validator
+
+from mcl3d.core.config import Section
+from mcl3d.odometry.lidar_odometry import OdometryConfig
+
+
+class FrontEndConfig(Section):
+    """What SLAM keeps of a scan (the odometry front-end has its own settings)."""
+
+    fov_deg: float = Field(360.0, gt=0, le=360, description="keep points within ±fov/2 of "
+                           "the lidar's +x axis (the paper crops the backward half: 180)")
+    scan_voxel_m: float = Field(0.25, gt=0, description="downsampling of scans and keyframe "
+                                "clouds (m)")
+
+
+class KeyframeConfig(Section):
+    """When a scan becomes a keyframe, and the Gaussian voxel maps kept of it."""
+
+    voxel_m: float = Field(0.5, gt=0, description="Gaussian voxel size of the keyframe maps "
+                           "used for likelihood and correction (m)")
+    overlap: float = Field(0.7, gt=0, le=1, description="new keyframe when the scan's voxel "
+                           "overlap with the last keyframe drops below this (fraction)")
+    overlap_voxel_m: float = Field(1.0, gt=0, description="voxel size of the overlap test (m)")
+    max_points: int = Field(2048, ge=64, description="most points per keyframe map")
+    capacity: int = Field(256, ge=2, description="most keyframes in a run (voxel maps are "
+                          "allocated for this many)")
+
+
+class PredictionNoiseConfig(Section):
+    """The noise δ each particle draws around the odometry's motion (eq. 1)."""
+
+    odometry_scale: float = Field(0.25, ge=0, description="× the odometry's σ (its inverse "
+                                  "Hessian overstates the per-scan error)")
+    trans_per_m: float = Field(0.01, ge=0, description="translation σ (m) per metre moved")
+    rot_deg_per_m: float = Field(0.05, ge=0, description="rotation σ (deg) per metre moved")
+    rot_deg_per_deg: float = Field(0.01, ge=0, description="rotation σ (deg) per degree "
+                                   "turned")
+    trans_min_m: float = Field(0.001, ge=0, description="translation σ floor per scan (m)")
+    rot_min_deg: float = Field(0.01, ge=0, description="rotation σ floor per scan (deg)")
+    max_odometry_sigma_m: float = Field(0.0025, gt=0, description="cap on the odometry's "
+                                        "translation σ per scan (degenerate or lost "
+                                        "registration) (m)")
+    max_odometry_sigma_deg: float = Field(0.025, gt=0, description="the same for rotation "
+                                          "(deg)")
+
+
+class LoopClosureConfig(Section):
+    """Which keyframes are a particle's neighbours, and which of them close a loop."""
+
+    min_travel_m: float = Field(10.0, gt=0, description="a neighbour keyframe this far back "
+                                "along the path is a loop (m)")
+    neighbour_max_dz_m: float = Field(2.0, gt=0, description="keyframes more than this above "
+                                      "or below a particle are not its neighbours (another "
+                                      "floor) (m)")
+
+
+class CorrectionConfig(Section):
+    """Gauss-Newton steps on the GICP cost: toward the loop keyframes (eq. 5-10), and for
+    particles without a loop toward their own newest keyframes."""
+
+    points: int = Field(512, ge=16, description="scan points per likelihood and Gauss-Newton "
+                        "evaluation")
+    gn_iterations: int = Field(1, ge=0, description="Gauss-Newton steps per loop frame (0: no "
+                               "gradient guidance)")
+    min_inliers: int = Field(100, ge=6, description="correspondences needed for a step (of "
+                             "`points`): a loop keyframe that sees little of the scan (the "
+                             "next row of trees, seen from behind) pulls the wrong way")
+    max_step_m: float = Field(1.0, gt=0, description="trust region of one step (m)")
+    max_step_deg: float = Field(5.0, gt=0, description="trust region of one step (deg)")
+    settled_step_m: float = Field(0.02, ge=0, description="a step this small means the "
+                                  "particle is on the loop: later steps spread from here "
+                                  "instead of from the oldest neighbour (m)")
+    settled_step_deg: float = Field(0.2, ge=0, description="the same for rotation (deg)")
+    refine_without_loop: bool = Field(True, description="particles without a loop take one "
+                                      "step toward their own newest keyframes per scan, the "
+                                      "prediction noise as prior (not in the paper; see "
+                                      "docs/slam.md)")
+
+
+class LikelihoodConfig(Section):
+    """The GICP log-likelihood that weighs the particles (eq. 2-3, 11)."""
+
+    points_weight: float = Field(30.0, gt=0, description="independent points a scan is worth "
+                                 "(tempering; see docs/slam.md)")
+    outlier_cost: float = Field(0.0, ge=0, description="cost of a scan point with no voxel "
+                                "(a matched point costs eᵀΩe; 0 as in the paper)")
+
+
+class PruningConfig(Section):
+    """Which particles die and are replaced by copies of living ones, and how hypotheses are
+    counted."""
+
+    posterior: float = Field(1e-8, ge=0, lt=1, description="dead below this posterior")
+    likelihood_ratio: float = Field(1e-16, ge=0, lt=1, description="dead when the frame "
+                                    "likelihood is below this times the best particle's")
+    hypothesis_cell_m: float = Field(2.0, gt=0, description="grid cell for counting "
+                                     "hypotheses (m)")
+
+
+class ElevatorConfig(Section):
+    """The elevator detector and the vertical random walk while it holds."""
+
+    median_range_m: float = Field(1.5, ge=0, description="elevator detected while the scan's "
+                                  "median range is below this (0: off) (m)")
+    sigma_z_m: float = Field(0.25, ge=0, description="vertical random walk per scan in the "
+                             "elevator, without IMU (m)")
+    imu_sigma_z_m: float = Field(0.01, ge=0, description="the same around the IMU's vertical "
+                                 "motion (m)")
+
+
+class SlamConfig(Section):
+    """Everything `MonteCarloSlam` uses."""
+
+    particles: int = Field(10000, ge=1, description="particles N")
+    seed: int = Field(0, ge=0, lt=2**32, description="random seed (reproducible runs)")
+    front_end: FrontEndConfig = FrontEndConfig()
+    keyframes: KeyframeConfig = KeyframeConfig()
+    prediction_noise: PredictionNoiseConfig = PredictionNoiseConfig()
+    loop_closure: LoopClosureConfig = LoopClosureConfig()
+    correction: CorrectionConfig = CorrectionConfig()
+    likelihood: LikelihoodConfig = LikelihoodConfig()
+    pruning: PruningConfig = PruningConfig()
+    elevator: ElevatorConfig = ElevatorConfig()
+    odometry: OdometryConfig = OdometryConfig()
+
+    @model_validator(mode="after")
+    def _keyframe_voxels_hold_scans(self) -> SlamConfig:
+        if self.keyframes.voxel_m < self.front_end.scan_voxel_m:
+            raise ValueError("keyframes.voxel_m must be >= front_end.scan_voxel_m")
+        return self

@@ -1,0 +1,149 @@
+"""What a SLAM run reports: the typed summary behind slam_summary.json and the CLI's table,
+and the accuracy of its trajectories against the log's ground truth."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from mcl3d.core.errors import Mcl3dError
+from mcl3d.evaluation.metrics import evaluate
+from mcl3d.io.trajectory import Trajectory
+from mcl3d.mapping.pipeline import format_bytes
+from mcl3d.odometry.odometry_summary import FrameTimesMs, evaluation_entry
+from mcl3d.slam.monte_carlo_slam import STAGES, MonteCarloSlam
+
+MAX_LISTED_WARNINGS = 100  # the summary lists this many, and counts them all
+WARM_UP_FRAMES = 3  # the first scans include compiling each kernel: left out of the timings
+MIN_POSES_FOR_ALIGNMENT = 3  # an SE(3) alignment needs this many poses
+
+
+@dataclass(frozen=True)
+class AteRmse:
+    """ATE RMSE after an SE(3) alignment (as `evo_ape -a`)."""
+
+    ate_m: float
+    ate_deg: float
+
+
+@dataclass(frozen=True)
+class SlamAccuracy:
+    slam: AteRmse  # the representative's trajectory, placed by its corrected keyframes
+    online: AteRmse  # the representative of each scan as chosen when the scan came
+    odometry: AteRmse  # the odometry front-end alone
+
+    def as_dict(self) -> dict:
+        return {name: {"ate_m": ate.ate_m, "ate_deg": ate.ate_deg}
+                for name, ate in (("slam", self.slam), ("online", self.online),
+                                  ("odometry", self.odometry))}
+
+
+@dataclass(frozen=True)
+class SlamSummary:
+    """One run in numbers; `as_dict` is slam_summary.json."""
+
+    scans: int
+    interrupted: bool
+    particles: int
+    keyframes: int
+    path_length_m: float  # of the odometry
+    loop_frames: int  # scans on which some particle saw a loop
+    corrected_frames: int  # scans on which some particle took a loop correction
+    pruned_total: int
+    elevator_frames: int
+    final_hypotheses: int
+    final_ess: float
+    ms_per_frame: FrameTimesMs
+    ms_per_stage: dict[str, float]  # mean per scan, by stage of `STAGES`
+    particle_state_bytes: int
+    notes: list[str]
+    odometry_warnings: list[str]  # the first ones, each naming its scan
+    num_odometry_warnings: int
+    accuracy: SlamAccuracy | None  # None without ground truth
+    accuracy_error: str | None = None  # why the accuracy could not be computed
+
+    def as_dict(self) -> dict:
+        return {
+            "scans": self.scans, "interrupted": self.interrupted,
+            "particles": self.particles, "keyframes": self.keyframes,
+            "path_length_m": self.path_length_m, "loop_frames": self.loop_frames,
+            "corrected_frames": self.corrected_frames, "pruned_total": self.pruned_total,
+            "elevator_frames": self.elevator_frames,
+            "final_hypotheses": self.final_hypotheses, "final_ess": self.final_ess,
+            "ms_per_frame": self.ms_per_frame.as_dict(), "ms_per_stage": self.ms_per_stage,
+            "particle_state_bytes": self.particle_state_bytes, "notes": self.notes,
+            "odometry_warnings": self.odometry_warnings,
+            "num_odometry_warnings": self.num_odometry_warnings,
+            "evaluation": evaluation_entry(self.accuracy, self.accuracy_error)}
+
+
+def summarize(slam: MonteCarloSlam, trajectories: dict[str, Trajectory],
+              gt: Trajectory | None, notes: list[str], interrupted: bool) -> SlamSummary:
+    """The summary of a run; `trajectories` are "slam", "online" and "odometry"."""
+    frames = slam.frames
+    steady = frames[WARM_UP_FRAMES:] or frames
+    ms = {s: float(np.mean([f.timings_ms.get(s, 0.0) for f in steady])) for s in STAGES}
+    totals = np.array([sum(f.timings_ms.values()) for f in steady])
+    warnings = [f"scan {i}: {w}" for i, f in enumerate(frames) for w in f.odometry_warnings]
+    accuracy, accuracy_error = _evaluate(trajectories, gt)
+    return SlamSummary(
+        scans=len(frames), interrupted=interrupted, particles=slam.cfg.particles,
+        keyframes=slam.particles.num_keyframes,
+        path_length_m=trajectories["odometry"].path_length_m(),
+        loop_frames=int(sum(f.looping > 0 for f in frames)),
+        corrected_frames=int(sum(f.corrected > 0 for f in frames)),
+        pruned_total=int(sum(f.pruned for f in frames)),
+        elevator_frames=int(sum(f.elevator for f in frames)),
+        final_hypotheses=frames[-1].hypotheses, final_ess=frames[-1].ess,
+        ms_per_frame=FrameTimesMs.of(totals), ms_per_stage=ms,
+        particle_state_bytes=slam.particles.state_bytes(), notes=notes,
+        odometry_warnings=warnings[:MAX_LISTED_WARNINGS], num_odometry_warnings=len(warnings),
+        accuracy=accuracy, accuracy_error=accuracy_error)
+
+
+def _evaluate(trajectories: dict[str, Trajectory], gt: Trajectory | None
+              ) -> tuple[SlamAccuracy | None, str | None]:
+    """(accuracy, None), or (None, why not); (None, None) without ground truth or with too
+    few poses."""
+    if gt is None:
+        return None, None
+    ates = {}
+    for name, est in trajectories.items():
+        if len(est) < MIN_POSES_FOR_ALIGNMENT:
+            return None, None
+        try:
+            ev = evaluate(gt, est, alignment="se3")
+        except Mcl3dError as exc:
+            return None, str(exc)
+        ates[name] = AteRmse(ev.ate.translation_m.rmse, ev.ate.rotation_deg.rmse)
+    return SlamAccuracy(**ates), None
+
+
+def summary_rows(summary: SlamSummary, backend: str, output_dir: Path,
+                 tsdf: Path | None = None) -> list[tuple[str, str]]:
+    """The rows (what, value) of the end-of-run table; `backend` says what ran it, `tsdf` is
+    the TSDF map built from the result, if any."""
+    s, ms = summary, summary.ms_per_frame
+    stages = ", ".join(f"{k} {v:.0f}" for k, v in s.ms_per_stage.items() if v >= 0.5)
+    rows = [("scans", f"{s.scans} ({s.keyframes} keyframes, {s.path_length_m:.1f} m)"),
+            ("particles", f"{s.particles:,} ({format_bytes(s.particle_state_bytes)} "
+                          "of particle state)"),
+            ("backend", backend),
+            ("ms per frame", f"{ms.mean:.0f} mean, {ms.median:.0f} median"),
+            ("ms per stage", stages),
+            ("loops", f"{s.loop_frames} scans saw a loop, {s.corrected_frames} corrected"),
+            ("pruned", f"{s.pruned_total:,} particles"),
+            ("hypotheses at the end", f"{s.final_hypotheses} (ESS {s.final_ess:.0f})")]
+    if s.elevator_frames:
+        rows.append(("elevator", f"{s.elevator_frames} scans"))
+    if s.accuracy is not None:
+        for ate, label in ((s.accuracy.slam, "ATE SLAM"), (s.accuracy.online, "ATE online"),
+                           (s.accuracy.odometry, "ATE odometry only")):
+            rows.append((label, f"{ate.ate_m:.3f} m, {ate.ate_deg:.2f} deg "
+                                "RMSE (SE(3)-aligned)"))
+    if tsdf is not None:
+        rows.append(("TSDF map", str(tsdf)))
+    rows.append(("outputs", str(output_dir)))
+    return rows
