@@ -345,7 +345,7 @@ def map_info(
     from mcl3d.core.outputs import check_writable
     from mcl3d.mapping.pipeline import map_rows
     from mcl3d.maps import export
-    from mcl3d.maps.io import read_blocks
+    from mcl3d.maps.map_file import read_blocks
     from mcl3d.maps.tsdf import block_stats, loaded_bytes_per_block
 
     for path in (export_mesh, export_points):
@@ -441,9 +441,9 @@ def localize(
     """6-DoF Monte Carlo localization of a log in a TSDF map (global or tracking)."""
     from mcl3d.console import ProgressBars, console, summary_table
     from mcl3d.core import config as config_mod
+    from mcl3d.localization.localization_summary import summary_rows
     from mcl3d.localization.motion_source import KINDS
     from mcl3d.localization.pipeline import LocalizeConfig, LocalizeRequest, Topics, run
-    from mcl3d.localization.summary import summary_rows
 
     if motion is not None and motion not in KINDS:
         raise typer.BadParameter("--motion must be auto, odom, imu or constant_velocity")

@@ -82,7 +82,7 @@ def numpy_seconds_per_particle(host, loc, pts, n_sub: int) -> float:
 
 
 def bench_case(tsdf, host, scan, T, n: int, m: int, repeats: int, numpy_sub: int) -> dict:
-    from mcl3d.localization.config import LocalizerConfig
+    from mcl3d.localization.localization_config import LocalizerConfig
     from mcl3d.localization.localizer import Localizer
     from mcl3d.localization.sensor_model import reduce_scan
     from mcl3d.localization.state import STAGES
@@ -150,8 +150,8 @@ def main() -> None:
     from rich.table import Table
 
     from mcl3d.core import runtime
-    from mcl3d.localization.sensor_model import HostMap
-    from mcl3d.maps.io import load_map
+    from mcl3d.localization.sensor_model import NumpyTsdf
+    from mcl3d.maps.map_file import load_map
 
     log, map_path = ensure_data(args.cache_dir, args.log, args.map)
     info = runtime.init(args.backend)
@@ -162,7 +162,7 @@ def main() -> None:
                "map": str(map_path), "cases": [], "f16": []}
     for f16 in (False,) if args.no_f16 else (False, True):
         tsdf = load_map(map_path, f16=f16)
-        host = HostMap.of(tsdf)
+        host = NumpyTsdf.of(tsdf)
         for n in ns:
             for m in ms:
                 if f16 and (n, m) != (100_000, 256):

@@ -81,10 +81,10 @@ class Mcl3dRunner:
     """mcl3d odometry; the device fields are allocated once and reused for every pass."""
 
     def __init__(self, use_imu: bool):
-        from mcl3d.odometry.lidar_odometry import Odometry, OdometryConfig
+        from mcl3d.odometry.lidar_odometry import LidarOdometry, OdometryConfig
 
         self.use_imu = use_imu
-        self.odo = Odometry(OdometryConfig(use_imu=use_imu))
+        self.odo = LidarOdometry(OdometryConfig(use_imu=use_imu))
 
     def reset(self, T_lidar_imu):
         self.odo.reset(T_lidar_imu)

@@ -56,9 +56,9 @@ def read_scans(log: Path, count: int):
 
 def odometry_ms(scans) -> float:
     """The front-end's median ms per scan on the same scans (the baseline)."""
-    from mcl3d.odometry.lidar_odometry import Odometry
+    from mcl3d.odometry.lidar_odometry import LidarOdometry
 
-    odo = Odometry()
+    odo = LidarOdometry()
     ms = []
     for points, times, stamp in scans:
         t0 = time.perf_counter()

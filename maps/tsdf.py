@@ -115,7 +115,7 @@ def _data_oriented(cls):
 
 @_data_oriented
 class TsdfMap:
-    """A TSDF on the device; build with mcl3d.maps.build, load with mcl3d.maps.io.
+    """A TSDF on the device; build with mcl3d.maps.build, load with mcl3d.maps.map_file.
 
     `f16` stores distances (and weights) in half precision: half the memory for read-only
     localization maps. Fusion needs f32 (no f16 atomics on Vulkan).

@@ -21,12 +21,12 @@ from mcl3d.console import ProgressBars, log_info_tables, summary_table
 from mcl3d.core import config, runtime
 from mcl3d.core.errors import ConfigError, OutputExistsError
 from mcl3d.io.logs.info import log_info
+from mcl3d.localization.localization_summary import LocalizeSummary
+from mcl3d.localization.localization_summary import summary_rows as localize_rows
 from mcl3d.localization.particle_set import check_capacity
 from mcl3d.localization.pipeline import LocalizeConfig, LocalizeRequest
 from mcl3d.localization.pipeline import run as localize
 from mcl3d.localization.sensor_model import MIN_SCAN_POINTS
-from mcl3d.localization.summary import LocalizeSummary
-from mcl3d.localization.summary import summary_rows as localize_rows
 from mcl3d.mapping.pipeline import BuildMapRequest
 from mcl3d.mapping.pipeline import run as build_map
 from mcl3d.mapping.pipeline import summary_rows as map_summary_rows

@@ -13,7 +13,7 @@ import numpy as np
 from scipy.stats import norm
 
 from mcl3d.core import geometry
-from mcl3d.localization.config import EstimateConfig
+from mcl3d.localization.localization_config import EstimateConfig
 
 
 @dataclass(frozen=True)

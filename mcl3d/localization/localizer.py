@@ -18,9 +18,9 @@ from mcl3d.core import geometry
 from mcl3d.core.errors import InputError
 from mcl3d.kernels import motion
 from mcl3d.kernels import particles as kp
-from mcl3d.localization.config import LocalizerConfig
 from mcl3d.localization.estimate import PoseEstimate, WeightedParticles, estimate_pose
 from mcl3d.localization.initialization import FreeCells, free_cells
+from mcl3d.localization.localization_config import LocalizerConfig
 from mcl3d.localization.particle_set import ParticleSet
 from mcl3d.localization.random_streams import (
     ESTIMATE_SAMPLE_STREAM,

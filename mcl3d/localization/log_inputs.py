@@ -8,8 +8,8 @@ import numpy as np
 
 from mcl3d.core import geometry
 from mcl3d.core.errors import TopicError
-from mcl3d.localization.config import LocalizerConfig
 from mcl3d.localization.initialization import gravity_roll_pitch
+from mcl3d.localization.localization_config import LocalizerConfig
 from mcl3d.localization.motion_source import MotionSource, MotionSourceConfig
 
 

@@ -25,8 +25,14 @@ from mcl3d.core.progress import Progress, ProgressCallback, report
 from mcl3d.io.logs.messages import PointCloud, PoseStamped
 from mcl3d.io.logs.reader import LogReader
 from mcl3d.io.logs.writer import LogWriter
-from mcl3d.localization.config import LocalizerConfig, check_config
 from mcl3d.localization.initialization import auto_band
+from mcl3d.localization.localization_config import LocalizerConfig, check_config
+from mcl3d.localization.localization_summary import (
+    LocalizeSummary,
+    convergence,
+    stage_means,
+    summarize,
+)
 from mcl3d.localization.localizer import Localizer
 from mcl3d.localization.log_inputs import (
     first_messages,
@@ -35,11 +41,10 @@ from mcl3d.localization.log_inputs import (
     make_motion_source,
 )
 from mcl3d.localization.motion_source import MotionSource, MotionSourceConfig
-from mcl3d.localization.outputs import check_outputs, write_outputs
+from mcl3d.localization.output_files import check_outputs, write_outputs
 from mcl3d.localization.sensor_model import MIN_SCAN_POINTS
 from mcl3d.localization.state import EmptyScan, FilterState, LocalizationResult
-from mcl3d.localization.summary import LocalizeSummary, convergence, stage_means, summarize
-from mcl3d.maps.io import load_map
+from mcl3d.maps.map_file import load_map
 
 NO_OVERLAP_SCANS = 10  # global init: give up when no scan matched the map by then
 NO_OVERLAP_MATCH = 0.05

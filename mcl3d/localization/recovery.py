@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mcl3d.localization.config import RecoveryConfig
+from mcl3d.localization.localization_config import RecoveryConfig
 from mcl3d.localization.state import Reseed
 
 # expansion resetting: the std of z and of roll/pitch, relative to that of x/y and of yaw

@@ -15,8 +15,8 @@ import numpy as np
 from mcl3d.core import geometry
 from mcl3d.kernels import resample as kr
 from mcl3d.kernels.particles import gather
-from mcl3d.localization.config import ResampleConfig
 from mcl3d.localization.estimate import WeightedParticles, kld_sample_count, systematic_sample
+from mcl3d.localization.localization_config import ResampleConfig
 from mcl3d.localization.particle_set import ParticleSet
 
 MIN_WEIGHT_SQUARES = 1e-30  # keeps the ESS finite when every weight underflowed

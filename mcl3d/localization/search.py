@@ -14,7 +14,6 @@ import numpy as np
 
 from mcl3d.core import geometry
 from mcl3d.kernels.particles import add_scaled
-from mcl3d.localization.config import LocalizerConfig
 from mcl3d.localization.estimate import (
     ClusterParams,
     Hypothesis,
@@ -23,6 +22,7 @@ from mcl3d.localization.estimate import (
     label_particles,
     mode_floor,
 )
+from mcl3d.localization.localization_config import LocalizerConfig
 from mcl3d.localization.particle_set import ParticleSet
 
 COARSE_MIN_WEIGHT = 1e-12  # the coarse phase's mode floor protects any cluster it finds

@@ -143,7 +143,7 @@ def reduce_scan(points: np.ndarray, cfg: SensorModelConfig, rng: np.random.Gener
 
 
 @dataclass
-class HostMap:
+class NumpyTsdf:
     """The TSDF on the host (coarse grid of pool indices + pool), for the NumPy twin."""
 
     coarse: np.ndarray  # (cx, cy, cz) int32
@@ -154,9 +154,9 @@ class HostMap:
     truncation_m: float
 
     @staticmethod
-    def of(tsdf) -> HostMap:
+    def of(tsdf) -> NumpyTsdf:
         data = tsdf.blocks()  # rows in pool order, so coarse ids index them directly
-        return HostMap(tsdf.coarse_numpy(), data.sdf.astype(np.float32),
+        return NumpyTsdf(tsdf.coarse_numpy(), data.sdf.astype(np.float32),
                        data.weight.astype(np.float32), np.asarray(tsdf.origin_m, np.float32),
                        tsdf.voxel_size_m, tsdf.truncation_m)
 
@@ -199,7 +199,7 @@ def point_log_likelihood_numpy(d, w, b, trunc: float, cfg: SensorModelConfig,
     return ll
 
 
-def scan_log_likelihood_numpy(host: HostMap, positions: np.ndarray, quats_xyzw: np.ndarray,
+def scan_log_likelihood_numpy(host: NumpyTsdf, positions: np.ndarray, quats_xyzw: np.ndarray,
                               points: np.ndarray, cfg: SensorModelConfig, chunk: int = 1000
                               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(tempered log-likelihood increment, match ratio, mean per-point ll) per particle."""

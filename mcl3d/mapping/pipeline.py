@@ -22,7 +22,7 @@ from mcl3d.core.progress import Progress, ProgressCallback, report
 from mcl3d.io.logs.cloud_files import read_cloud_file
 from mcl3d.io.logs.reader import LogReader
 from mcl3d.io.trajectory import Trajectory, read_trajectory
-from mcl3d.maps import build, export, io
+from mcl3d.maps import build, export, map_file
 from mcl3d.maps.hatsdf import import_hatsdf
 from mcl3d.maps.tsdf import (
     MapGeometry,
@@ -317,8 +317,8 @@ def _write(req: BuildMapRequest, built: _Built, kind: str, seconds: float) -> Bu
         raise MapError(f"{req.source}: the map has no surface blocks; nothing to write")
     build_info = {"config": req.config.model_dump(), "seconds": round(seconds, 3),
                   "f16": req.f16}
-    header = io.save_map(req.output, tsdf, source=built.source_info, build=build_info,
-                         f16=req.f16)
+    header = map_file.save_map(req.output, tsdf, source=built.source_info, build=build_info,
+                               f16=req.f16)
     data = tsdf.blocks()
     stats = block_stats(tsdf.geometry, data, loaded_bytes_per_block(req.f16))
     stats = dataclasses.replace(stats, file_bytes=req.output.stat().st_size)

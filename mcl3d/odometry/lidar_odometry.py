@@ -124,7 +124,7 @@ def adaptive_voxel_size(points: np.ndarray) -> float:
     return 0.25 + 0.25 * float(np.clip((r - 5.0) / 15.0, 0.0, 1.0))
 
 
-class Odometry:
+class LidarOdometry:
     """Scan-to-model odometry; `step(cloud, imu)` per scan, in stamp order."""
 
     def __init__(self, config: OdometryConfig | None = None,

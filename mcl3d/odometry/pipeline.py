@@ -1,6 +1,6 @@
 """`mcl3d odometry LOG -o out/`: odometry over a whole log, written as trajectories + summary.
 
-Steps: check the outputs, open the log, find the lidar-IMU extrinsic, run `Odometry.step` on
+Steps: check the outputs, open the log, find the lidar-IMU extrinsic, run `LidarOdometry.step` on
 every scan with the IMU samples since the previous one, write the trajectory (TUM and KITTI),
 the per-frame relative motions with covariances, the effective config, and a summary (ms per
 frame, keyframes, warnings, ATE/RPE and drift against the log's ground truth when it has
@@ -21,7 +21,7 @@ from mcl3d.core.outputs import atomic_open, check_writable, output_folder
 from mcl3d.core.progress import Progress, ProgressCallback, report
 from mcl3d.io.logs.reader import LogReader
 from mcl3d.io.trajectory import Trajectory, write_kitti, write_tum
-from mcl3d.odometry.lidar_odometry import Odometry, OdometryConfig, OdometryFrame
+from mcl3d.odometry.lidar_odometry import LidarOdometry, OdometryConfig, OdometryFrame
 from mcl3d.odometry.odometry_summary import (
     FrameTimesMs,
     OdometrySummary,
@@ -90,7 +90,7 @@ def _run(req: OdometryRequest, on_progress: ProgressCallback | None) -> Odometry
     with LogReader(req.log, points_topic=req.points_topic, imu_topic=req.imu_topic,
                    gt_topic=req.gt_topic) as reader:
         reader.require("points")
-        odo: Odometry | None = None
+        odo: LidarOdometry | None = None
         total = reader.count("points") or None
         if req.max_scans is not None and total is not None:
             total = min(total, req.max_scans)
@@ -98,7 +98,7 @@ def _run(req: OdometryRequest, on_progress: ProgressCallback | None) -> Odometry
         try:
             for cloud, imu_rows, T_lidar_imu in feed:
                 if odo is None:
-                    odo = Odometry(cfg)
+                    odo = LidarOdometry(cfg)
                 odo.T_lidar_imu = T_lidar_imu
                 frames.append(odo.step(cloud.points, cloud.times_s, cloud.stamp_ns, imu_rows))
                 report(on_progress, Progress("odometry", len(frames), total))

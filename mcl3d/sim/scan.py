@@ -14,7 +14,7 @@ REFERENCE_REFLECTIVITY = 0.8  # datasheet max range is quoted for an 80% white t
 
 
 @dataclass
-class Scan:
+class SimulatedScan:
     points: np.ndarray  # (N, 3) float32, lidar frame at each point's firing time
     times_s: np.ndarray  # (N,) float32 relative to the stamp
     intensity: np.ndarray  # (N,) float32
@@ -26,7 +26,7 @@ class Scan:
 
 def simulate_scan(model: LidarModel, cfg: LidarConfig, caster: WorldCaster,
                   traj: SimTrajectory, T_base_lidar: np.ndarray, scan_index: int,
-                  stamp_s: float, rng: np.random.Generator) -> Scan:
+                  stamp_s: float, rng: np.random.Generator) -> SimulatedScan:
     """Cast one sweep starting at `stamp_s`; each return uses the pose at its own time."""
     period = 1.0 / cfg.rate_hz
     firing = model.firing(scan_index, period, cfg.column_stride)
@@ -59,5 +59,6 @@ def simulate_scan(model: LidarModel, cfg: LidarConfig, caster: WorldCaster,
     n_valid = int(valid.sum())
     if firing.organized is not None:  # "no return" stays in place as a zero point
         height, width = firing.organized
-        return Scan(points, times, intensity, ring, height, width, n_valid)
-    return Scan(points[valid], times[valid], intensity[valid], ring[valid], 1, n_valid, n_valid)
+        return SimulatedScan(points, times, intensity, ring, height, width, n_valid)
+    return SimulatedScan(points[valid], times[valid], intensity[valid], ring[valid], 1, n_valid,
+                         n_valid)

@@ -42,7 +42,7 @@ from mcl3d.core.geometry import (
 )
 from mcl3d.kernels.scan_grid import MAX_K
 from mcl3d.kernels.slam import NEIGHBOURS, UNSCORED
-from mcl3d.odometry.lidar_odometry import LOST_COVARIANCE, Odometry, OdometryFrame
+from mcl3d.odometry.lidar_odometry import LOST_COVARIANCE, LidarOdometry, OdometryFrame
 from mcl3d.registration.batch_gicp import BatchGicp
 from mcl3d.registration.gaussian_voxels import GaussianVoxelMaps
 from mcl3d.registration.gicp_state import SourcePool
@@ -55,8 +55,8 @@ from mcl3d.registration.preprocess import (
     voxel_downsample,
 )
 from mcl3d.slam.elevator import ElevatorRide, in_elevator
-from mcl3d.slam.particles import DRIFT_SUMS, SlamParticles
 from mcl3d.slam.slam_config import PredictionNoiseConfig, PruningConfig, SlamConfig
+from mcl3d.slam.slam_particles import DRIFT_SUMS, SlamParticles
 
 STAGES = ("odometry", "preprocess", "predict", "correct", "weigh", "refine", "keyframe",
           "prune", "estimate")
@@ -191,7 +191,7 @@ class MonteCarloSlam:
     def __init__(self, config: SlamConfig | None = None,
                  T_lidar_imu: np.ndarray | None = None):
         self.cfg = cfg = config or SlamConfig()
-        self.odometry = Odometry(cfg.odometry, T_lidar_imu)
+        self.odometry = LidarOdometry(cfg.odometry, T_lidar_imu)
         kf = cfg.keyframes
         buckets = 1 << int(np.ceil(np.log2(KEYFRAME_BUCKETS_PER_POINT * kf.max_points)))
         self.maps = GaussianVoxelMaps(max_maps=kf.capacity, buckets_per_map=buckets,
@@ -220,7 +220,7 @@ class MonteCarloSlam:
     def step(self, points: np.ndarray, times_s: np.ndarray | None, stamp_ns: int,
              imu: np.ndarray | None = None) -> SlamFrame:
         """Odometry, predict, correct and weigh, keyframe, prune, estimate (module docstring);
-        arguments as `Odometry.step`'s."""
+        arguments as `LidarOdometry.step`'s."""
         cfg = self.cfg
         watch = _Stopwatch()
         points = np.asarray(points, dtype=np.float64).reshape(-1, 3)

@@ -75,7 +75,7 @@ def test_build_from_mesh_then_map_info_and_exports(ti_runtime, room_files, tmp_p
 
 def test_build_from_point_cloud_with_f16(ti_runtime, room_files, tmp_path):
     from mcl3d.io.trajectory import Trajectory, write_tum
-    from mcl3d.maps.io import read_header
+    from mcl3d.maps.map_file import read_header
 
     d, _ = room_files
     out = tmp_path / "cloud.tsdf"
@@ -91,7 +91,7 @@ def test_build_from_point_cloud_with_f16(ti_runtime, room_files, tmp_path):
 
 def test_build_from_log_with_ground_truth_and_trajectory(ti_runtime, room_files, tmp_path):
     from mcl3d.io.trajectory import Trajectory, write_tum
-    from mcl3d.maps.io import read_header
+    from mcl3d.maps.map_file import read_header
 
     _, scans = room_files
     stamps = [STAMP0_NS + i * 100_000_000 for i in range(3)]

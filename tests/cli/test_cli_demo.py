@@ -21,7 +21,7 @@ def test_demo_runs_every_step_into_a_fresh_folder(tmp_path: Path):
     assert "1. Simulate a short office log" in result.output
     assert "/lidar/points" in result.output and "/ground_truth" in result.output
     assert "3. Build a TSDF map" in result.output
-    from mcl3d.maps.io import read_blocks
+    from mcl3d.maps.map_file import read_blocks
 
     header, _geometry, data = read_blocks(latest / "office.tsdf")
     assert header["source"]["kind"] == "log" and len(data.sdf) > 1000

@@ -29,7 +29,7 @@ def data(tmp_path_factory):
 def save_corridor_map(path) -> None:
     """A map of another place: a long bare corridor, nothing like the room."""
     from mcl3d.maps.build import BuildConfig, build_from_mesh
-    from mcl3d.maps.io import save_map
+    from mcl3d.maps.map_file import save_map
     from mcl3d.sim.mesh import MeshBuilder
 
     b = MeshBuilder()

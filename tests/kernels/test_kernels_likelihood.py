@@ -6,7 +6,7 @@ import pytest
 
 from mcl3d.core import geometry
 from mcl3d.localization.sensor_model import (
-    HostMap,
+    NumpyTsdf,
     SensorModelConfig,
     code_table,
     point_log_likelihood_numpy,
@@ -79,7 +79,7 @@ def run_kernel(tsdf, positions, quats, points, cfg, cache_block):
 @pytest.mark.parametrize("cache_block", [False, True])
 def test_kernel_matches_numpy_twin(ti_runtime, cache_block):
     tsdf = tiny_map()
-    host = HostMap.of(tsdf)
+    host = NumpyTsdf.of(tsdf)
     cfg = SensorModelConfig(sigma_m=0.05, effective_points=4.0)
     rng = np.random.default_rng(0)
     n, m = 37, 23
@@ -102,7 +102,7 @@ def test_codes_match_the_model_at_every_voxel(ti_runtime):
     from mcl3d.kernels.likelihood import MATCH_BIT
 
     tsdf = tiny_map()
-    host = HostMap.of(tsdf)
+    host = NumpyTsdf.of(tsdf)
     cfg = SensorModelConfig(sigma_m=0.05, match_dist_m=0.12)
     codes, slots = code_map(tsdf, cfg)
     words, slot = codes.to_numpy(), slots.to_numpy()

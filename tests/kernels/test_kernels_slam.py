@@ -7,8 +7,8 @@ import pytest
 
 from mcl3d.core import geometry
 from mcl3d.slam.monte_carlo_slam import prune_plan
-from mcl3d.slam.particles import unpack_poses
 from mcl3d.slam.slam_config import PruningConfig
+from mcl3d.slam.slam_particles import unpack_poses
 
 
 def random_poses(rng, n, spread=5.0):
@@ -398,7 +398,7 @@ def test_respawn_copies_the_whole_state(ti_runtime):
 
 @pytest.mark.parametrize("count", [1, 9])
 def test_particle_keyframe_storage_grows_and_keeps_poses(ti_runtime, count):
-    from mcl3d.slam.particles import KEYFRAME_STEP, SlamParticles
+    from mcl3d.slam.slam_particles import KEYFRAME_STEP, SlamParticles
 
     p = SlamParticles(3, 64, gicp=None, seed=0)
     rng = np.random.default_rng(6)

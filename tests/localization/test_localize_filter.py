@@ -35,7 +35,7 @@ def odometry(path, rng, noise_m=0.01, noise_rad=0.005):
 
 
 def test_tracking_never_diverges(room, ti_runtime):
-    from mcl3d.localization.config import LocalizerConfig
+    from mcl3d.localization.localization_config import LocalizerConfig
     from mcl3d.localization.localizer import Localizer
 
     tsdf, scanner = room
@@ -57,7 +57,7 @@ def test_tracking_never_diverges(room, ti_runtime):
 
 
 def test_global_localization_converges(room, ti_runtime):
-    from mcl3d.localization.config import LocalizerConfig
+    from mcl3d.localization.localization_config import LocalizerConfig
     from mcl3d.localization.localizer import Localizer
 
     tsdf, scanner = room
@@ -76,7 +76,7 @@ def test_global_localization_converges(room, ti_runtime):
 def test_standing_still_is_never_converged_in_a_global_search(room, ti_runtime):
     """Scans from one place are not independent evidence: however peaked the cloud gets, a
     global search that has not moved stays unconverged, then converges once it moves."""
-    from mcl3d.localization.config import LocalizerConfig
+    from mcl3d.localization.localization_config import LocalizerConfig
     from mcl3d.localization.localizer import Localizer
 
     tsdf, scanner = room
@@ -109,7 +109,7 @@ def test_global_candidates_stay_under_the_ceiling(room, ti_runtime):
 
 
 def test_kld_adapts_the_particle_count(room, ti_runtime):
-    from mcl3d.localization.config import LocalizerConfig
+    from mcl3d.localization.localization_config import LocalizerConfig
     from mcl3d.localization.localizer import Localizer
 
     tsdf, scanner = room
@@ -143,7 +143,7 @@ def search_two_modes(tsdf, scanner, path, mirror, n_true, true_offset_m, true_ya
                      spread_rad, resample, rng):
     """A global search of 6000 particles along `path`: n_true near the truth (shifted by
     true_offset_m, at yaw true_yaw), the rest on the `mirror` pose; the results per scan."""
-    from mcl3d.localization.config import LocalizerConfig
+    from mcl3d.localization.localization_config import LocalizerConfig
     from mcl3d.localization.localizer import Localizer
 
     n = 6000
@@ -218,7 +218,7 @@ def test_a_global_reseed_without_imu_keeps_the_robot_upright(room, ti_runtime):
     """Tracking without an IMU, then a kidnapping: the global re-seed draws yaw uniformly but
     takes roll and pitch from the last converged estimate (uniform rotations on SO(3) would
     put nearly every particle on a tilted pose that no scan can match)."""
-    from mcl3d.localization.config import LocalizerConfig
+    from mcl3d.localization.localization_config import LocalizerConfig
     from mcl3d.localization.localizer import Localizer
 
     tsdf, scanner = room
@@ -249,7 +249,7 @@ def test_same_result_on_cpu_and_vulkan(vulkan_runtime):
 
     Kept last in this file: switching the backend invalidates the module's `room` map."""
     from mcl3d.core import runtime
-    from mcl3d.localization.config import LocalizerConfig
+    from mcl3d.localization.localization_config import LocalizerConfig
     from mcl3d.localization.localizer import Localizer
 
     def run(backend):

@@ -70,7 +70,7 @@ def test_crop_mesh_keeps_the_inside_exactly():
 
 def _save_mesh_map(path, vertices, triangles, voxel_size_m: float) -> None:
     from mcl3d.maps.build import BuildConfig, build_from_mesh
-    from mcl3d.maps.io import save_map
+    from mcl3d.maps.map_file import save_map
 
     tsdf = build_from_mesh(vertices, triangles, BuildConfig(voxel_size_m=voxel_size_m))
     save_map(path, tsdf, source={"kind": "mesh", "path": "simulated office"}, build={})

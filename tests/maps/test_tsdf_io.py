@@ -25,14 +25,14 @@ def _small_map():
 
 
 def _save(tsdf, path, f16=False):
-    from mcl3d.maps.io import save_map
+    from mcl3d.maps.map_file import save_map
 
     return save_map(path, tsdf, source={"kind": "test"}, build={"note": "unit test"}, f16=f16)
 
 
 @pytest.mark.parametrize("f16", [False, True])
 def test_round_trip(ti_runtime, tmp_path, f16):
-    from mcl3d.maps.io import load_map, read_header
+    from mcl3d.maps.map_file import load_map, read_header
 
     tsdf, coords, sdf, weight = _small_map()
     path = tmp_path / "m.tsdf"
@@ -98,7 +98,7 @@ def saved(ti_runtime, tmp_path):
 
 
 def test_truncated_file(saved, tmp_path):
-    from mcl3d.maps.io import load_map
+    from mcl3d.maps.map_file import load_map
 
     bad = tmp_path / "cut.tsdf"
     bad.write_bytes(saved.read_bytes()[: saved.stat().st_size // 2])
@@ -107,7 +107,7 @@ def test_truncated_file(saved, tmp_path):
 
 
 def test_corrupted_bytes_fail_the_checksum(saved, tmp_path):
-    from mcl3d.maps.io import load_map
+    from mcl3d.maps.map_file import load_map
 
     with zipfile.ZipFile(saved) as z:
         info = z.getinfo("sdf.npy")
@@ -122,7 +122,7 @@ def test_corrupted_bytes_fail_the_checksum(saved, tmp_path):
 
 
 def test_other_format_version(saved, tmp_path):
-    from mcl3d.maps.io import load_map
+    from mcl3d.maps.map_file import load_map
 
     def change(name, arr):
         if name == "header":
@@ -138,7 +138,7 @@ def test_other_format_version(saved, tmp_path):
 
 
 def test_inconsistent_sizes(saved, tmp_path):
-    from mcl3d.maps.io import load_map
+    from mcl3d.maps.map_file import load_map
 
     bad = tmp_path / "sizes.tsdf"
     _rewrite(saved, bad, lambda n, a: a[:2] if n == "sdf" else a)
@@ -151,7 +151,7 @@ def test_inconsistent_sizes(saved, tmp_path):
 
 
 def test_missing_member_and_not_a_map(saved, tmp_path):
-    from mcl3d.maps.io import load_map, read_header
+    from mcl3d.maps.map_file import load_map, read_header
 
     bad = tmp_path / "nofree.tsdf"
     _rewrite(saved, bad, lambda n, a: None if n == "free_coords" else a)
@@ -172,7 +172,7 @@ def test_missing_member_and_not_a_map(saved, tmp_path):
 
 
 def test_nan_values_are_rejected(saved, tmp_path):
-    from mcl3d.maps.io import load_map
+    from mcl3d.maps.map_file import load_map
 
     def change(name, arr):
         if name == "weight":

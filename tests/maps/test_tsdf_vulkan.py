@@ -14,7 +14,7 @@ def _run(backend, tmp_path):
     from mcl3d.core import runtime
     from mcl3d.kernels import tsdf_lookup as k
     from mcl3d.maps.build import BuildConfig, MapGeometry, ScanFuser, new_map
-    from mcl3d.maps.io import load_map, save_map
+    from mcl3d.maps.map_file import load_map, save_map
 
     runtime.init(backend)
     vertices, triangles = world.room_mesh()

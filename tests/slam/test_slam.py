@@ -28,7 +28,7 @@ def test_loop_closure_pulls_the_current_pose_and_bends_the_keyframes(ti_runtime)
     from mcl3d.registration.batch_gicp import BatchGicp
     from mcl3d.registration.gaussian_voxels import GaussianVoxelMaps
     from mcl3d.registration.preprocess import estimate_covariances, voxel_downsample
-    from mcl3d.slam.particles import SlamParticles
+    from mcl3d.slam.slam_particles import SlamParticles
 
     rng = np.random.default_rng(0)
     world = voxel_downsample(room_cloud(rng), 0.2)
@@ -101,7 +101,7 @@ def test_slam_command_writes_every_output(forest_log, tmp_path, ti_runtime):
     import json
 
     from mcl3d.io.trajectory import read_kitti, read_tum
-    from mcl3d.maps.io import read_blocks
+    from mcl3d.maps.map_file import read_blocks
 
     out = tmp_path / "out"
     tsdf = tmp_path / "map.tsdf"

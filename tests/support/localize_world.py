@@ -154,7 +154,7 @@ def write_log(log_path, n_scans: int = 12, *, odom: bool = True, gt: bool = True
 def save_room_map(path, voxel_size_m: float = 0.05, offset_m=(0.0, 0.0, 0.0)) -> None:
     """The room's map as a .tsdf file (optionally built from the room moved by offset_m)."""
     from mcl3d.maps.build import BuildConfig, build_from_mesh
-    from mcl3d.maps.io import save_map
+    from mcl3d.maps.map_file import save_map
 
     mesh = room_mesh()
     tsdf = build_from_mesh(mesh.vertices + np.asarray(offset_m), mesh.triangles,

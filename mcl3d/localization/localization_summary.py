@@ -17,7 +17,7 @@ OPTIONAL_KEYS = ("ate_all", "ate_after_convergence", "ate_rmse_m_evo")  # only w
 
 
 @dataclass(frozen=True)
-class PoseErrors:
+class GroundTruthErrors:
     """Errors of estimated poses against the ground truth at the same stamps."""
 
     translation_rmse_m: float
@@ -45,8 +45,8 @@ class LocalizeSummary:
     final_state: str
     ms_per_update: dict[str, float]  # warm mean per stage, and "total"
     warnings: list[str]
-    ate_all: PoseErrors | None = None
-    ate_after_convergence: PoseErrors | None = None
+    ate_all: GroundTruthErrors | None = None
+    ate_after_convergence: GroundTruthErrors | None = None
     ate_rmse_m_evo: float | None = None  # ATE as evo computes it, a cross-check
 
     def to_json(self) -> dict:
@@ -58,10 +58,10 @@ class LocalizeSummary:
         return d
 
 
-def _errors(ref: np.ndarray, est: np.ndarray) -> PoseErrors:
+def _errors(ref: np.ndarray, est: np.ndarray) -> GroundTruthErrors:
     d = np.linalg.norm(ref[:, :3, 3] - est[:, :3, 3], axis=1)
     ang = np.degrees(geometry.rotation_angle(np.swapaxes(ref[:, :3, :3], 1, 2) @ est[:, :3, :3]))
-    return PoseErrors(translation_rmse_m=float(np.sqrt(np.mean(d**2))),
+    return GroundTruthErrors(translation_rmse_m=float(np.sqrt(np.mean(d**2))),
                       translation_max_m=float(d.max()),
                       rotation_rmse_deg=float(np.sqrt(np.mean(ang**2))),
                       rotation_max_deg=float(ang.max()), poses=len(d))

@@ -13,8 +13,8 @@ from mcl3d.core import geometry
 from mcl3d.core.config import Section, save
 from mcl3d.core.outputs import atomic_open, check_writable
 from mcl3d.io.trajectory import Trajectory, write_kitti, write_tum
+from mcl3d.localization.localization_summary import LocalizeSummary
 from mcl3d.localization.state import STAGES, LocalizationResult
-from mcl3d.localization.summary import LocalizeSummary
 
 OUTPUT_FILES = {"tum": "trajectory.tum", "kitti": "trajectory.kitti", "csv": "scans.csv",
                 "config": "config.yaml", "summary": "summary.json"}
