@@ -199,6 +199,8 @@ OdomTopicOption = Annotated[str | None, typer.Option(
 GtTopicOption = Annotated[str | None, typer.Option(
     "--gt-topic", help="Ground-truth pose topic (default: the one named ground_truth, "
                        "groundtruth or gt).")]
+JsonOption = Annotated[bool, typer.Option("--json", help="Print the facts as one JSON document "
+                                          "instead (keys: docs/json-output.md).")]
 
 
 @app.command()
@@ -211,15 +213,18 @@ def info(
     gt_topic: GtTopicOption = None,
     scans: Annotated[int, typer.Option(min=1, help="Scans decoded per cloud topic for the "
                                        "point statistics.")] = 3,
+    as_json: JsonOption = False,
 ) -> None:
     """Describe a log like `ros2 bag info`: topics, types, counts, rates, frames, cloud layout."""
-    from mcl3d.console import console, log_info_tables
+    from mcl3d.console import log_info_json, log_info_tables, print_json, print_tables
     from mcl3d.io.logs.info import log_info
 
     result = log_info(log, max_scans=scans, points_topic=points_topic, imu_topic=imu_topic,
                       odom_topic=odom_topic, gt_topic=gt_topic)
-    for table in log_info_tables(result):
-        console.print(table)
+    if as_json:
+        print_json(log_info_json(result))
+    else:
+        print_tables(log_info_tables(result))
 
 
 @app.command()
@@ -322,6 +327,7 @@ def build_map(
     with ProgressBars() as bars:
         result = run(request, bars.on_progress)
     console.print(summary_table("Map built", summary_rows(result, info.backend)))
+    _print_notes([], result.faults.warnings(), 0)
 
 
 @app.command("map-info")
@@ -334,41 +340,18 @@ def map_info(
         "--export-points", help="Write the surface voxels as points (.ply/.pcd).",
         show_default=False)] = None,
     force: Annotated[bool, typer.Option("--force", help="Overwrite existing outputs.")] = False,
+    as_json: JsonOption = False,
 ) -> None:
     """Print a map's header and statistics; optionally export it for viewers."""
-    import dataclasses
-    import json
+    from mcl3d.console import map_info_table, print_json, print_tables
+    from mcl3d.mapping.map_info import map_info as read_map_info
 
-    import numpy as np
-
-    from mcl3d.console import console, summary_table
-    from mcl3d.core.outputs import check_writable
-    from mcl3d.mapping.pipeline import map_rows
-    from mcl3d.maps import export
-    from mcl3d.maps.map_file import read_blocks
-    from mcl3d.maps.tsdf import block_stats, loaded_bytes_per_block
-
-    for path in (export_mesh, export_points):
-        if path:
-            check_writable(path, force)
-    header, geometry, data = read_blocks(map_file)
-    stats = block_stats(geometry, data, loaded_bytes_per_block(data.sdf.dtype == np.float16))
-    stats = dataclasses.replace(stats, file_bytes=map_file.stat().st_size)
-    rows = [("file", str(map_file)),
-            ("format", f"{header['format']} v{header['format_version']} (mcl3d "
-                       f"{header.get('mcl3d_version', '?')}, {header.get('created_utc', '?')})"),
-            ("frame", header["frame_id"]),
-            ("precision", header["distance_dtype"]),
-            *map_rows(geometry, stats),
-            ("built from", json.dumps(header.get("source", {}))),
-            ("build time", f"{header.get('build', {}).get('seconds', '?')} s")]
-    if export_mesh:
-        rows.append(("mesh", f"{export.write_mesh(export_mesh, geometry, data)} triangles -> "
-                             f"{export_mesh}"))
-    if export_points:
-        rows.append(("points", f"{export.write_points(export_points, geometry, data)} points "
-                               f"-> {export_points}"))
-    console.print(summary_table("Map", rows))
+    result = read_map_info(map_file, export_mesh=export_mesh, export_points=export_points,
+                           force=force)
+    if as_json:
+        print_json(result.as_dict())
+    else:
+        print_tables([map_info_table(result)])
 
 
 # ------------------------------------------------------------------------ localize
@@ -458,7 +441,7 @@ def localize(
         result = run(request, on_progress=bars.on_progress)
     s = result.summary
     console.print(summary_table("Localization", summary_rows(s, out)))
-    for w in s.warnings[:5]:
+    for w in [*s.faults.warnings(), *s.warnings[:5]]:
         console.print(f"[yellow]warning:[/] {w}")
 
 
@@ -534,16 +517,16 @@ def odometry(
     s = result.summary
     console.print(summary_table("Odometry", summary_rows(s, f"{info.backend} ({info.device})",
                                                           out)))
-    _print_notes(s.notes, s.warnings, s.num_warnings)
+    _print_notes(s.notes, s.warnings, s.num_warnings, s.faults.warnings())
 
 
-def _print_notes(notes: list[str], warnings: list[str], num_warnings: int) -> None:
-    """A run's notes, and its first five warnings."""
+def _print_notes(notes: list[str], warnings: list[str], num_warnings: int, faults=()) -> None:
+    """A run's notes, its messages dropped for faults (a line per kind) and first warnings."""
     from mcl3d.console import console
 
     for note in notes:
         console.print(f"[yellow]note:[/] {note}")
-    for w in warnings[:5]:
+    for w in [*faults, *warnings[:5]]:
         console.print(f"[yellow]warning:[/] {w}")
     if num_warnings > 5:
         console.print(f"[yellow]... {num_warnings - 5} more warnings in the summary[/]")
@@ -595,4 +578,4 @@ def slam(
     rows = summary_rows(result.summary, f"{info.backend} ({info.device})", out,
                         result.tsdf.path if result.tsdf else None)
     console.print(summary_table("Monte Carlo SLAM", rows))
-    _print_notes(result.summary.notes, [], 0)
+    _print_notes(result.summary.notes, [], 0, result.summary.faults.warnings())

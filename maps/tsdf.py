@@ -290,6 +290,18 @@ class MapStats:
     extent_hi_m: list[float]
     file_bytes: int | None = None  # the map file, when there is one
 
+    def as_dict(self) -> dict:
+        """Counts and bytes as plain numbers (`mcl3d map-info --json`)."""
+        return {"blocks": {"allocated": self.blocks, "free": self.free_blocks,
+                           "unknown_cells": self.unknown_cells},
+                "voxels": {"surface": self.surface_voxels, "observed": self.observed_voxels,
+                           "free": self.free_voxels},
+                "memory": {"bytes_per_block": self.bytes_per_block,
+                           "pool_bytes": self.pool_bytes, "coarse_bytes": self.coarse_bytes,
+                           "loaded_bytes": self.pool_bytes + self.coarse_bytes,
+                           "dense_grid_bytes": self.dense_grid_bytes,
+                           "file_bytes": self.file_bytes}}
+
 
 def loaded_bytes_per_block(f16: bool) -> int:
     """Device memory per block of a map loaded for localization (read-only): distances and

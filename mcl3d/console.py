@@ -1,16 +1,22 @@
 """The CLI's terminal output, all Rich: progress bars drawn from the pipelines' progress
-reports, summary tables, the tables of `mcl3d info`, and library errors with their flags.
+reports, summary tables, the tables (and JSON) of `mcl3d info` and `mcl3d map-info`, and
+library errors with their flags.
 
-Progress bars show on a terminal and stay silent in pipes and CI, so logs stay clean.
+Progress bars show on a terminal and stay silent in pipes and CI, so logs stay clean. Tables
+fit a terminal's width; in pipes and CI they print at their natural width, so that scripts
+and logs see every topic name and path whole.
 """
 
 from __future__ import annotations
 
+import copy
+import json
 import os
 from collections.abc import Sequence
-from datetime import datetime, timezone
 from pathlib import Path
+from typing import TYPE_CHECKING
 
+from rich.cells import cell_len
 from rich.console import Console
 from rich.progress import (
     BarColumn,
@@ -25,13 +31,18 @@ from rich.table import Table
 from mcl3d.core import progress as pipeline_progress
 from mcl3d.evaluation.metrics import Evaluation
 from mcl3d.io.logs.info import CloudInfo, LogInfo
+from mcl3d.io.logs.info import iso_utc as _iso_utc
 from mcl3d.io.logs.ros_types import short_type
+
+if TYPE_CHECKING:
+    from mcl3d.mapping.map_info import MapInfo
 
 console = Console(highlight=False)
 err_console = Console(stderr=True, highlight=False)
 
 # settings whose flag is not named like them
 FLAG_OF_SETTING = {"max_capacity_blocks": "--capacity-blocks"}
+WIDEST_TABLE = 10_000  # columns a table may take when printed to a pipe
 
 
 def show_progress() -> bool:
@@ -54,12 +65,42 @@ def make_progress() -> Progress:
     )
 
 
+def flag_of(setting: str | None) -> str | None:
+    """The CLI flag of a library setting (the library names settings, never flags)."""
+    if setting is None:
+        return None
+    return FLAG_OF_SETTING.get(setting, "--" + setting.replace("_", "-"))
+
+
 def with_flag(message: str, setting: str | None) -> str:
-    """A library message plus the CLI flag of the setting that fixes it (the library names
-    settings, never flags)."""
+    """A library message plus the CLI flag of the setting that fixes it."""
     if setting is None:
         return message
-    return f"{message} ({FLAG_OF_SETTING.get(setting, '--' + setting.replace('_', '-'))})"
+    return f"{message} ({flag_of(setting)})"
+
+
+def print_tables(tables: Sequence[Table]) -> None:
+    """Print tables to stdout: fitted to a terminal, at their natural width elsewhere (a
+    pipe has no width to fit, and a name folded mid-word breaks scripts that grep it)."""
+    if console.is_terminal:
+        for table in tables:
+            console.print(table)
+        return
+    wide = console.options.update_width(WIDEST_TABLE)
+    natural = [console.measure(table, options=wide).maximum for table in tables]
+    titles = [cell_len(t.title) if isinstance(t.title, str) else 0 for t in tables]
+    out = Console(highlight=False, width=max([console.width, *natural, *titles]))
+    for table, width, title in zip(tables, natural, titles, strict=True):
+        if title > width:
+            out.print(table.title, markup=False)  # on its own line, not wrapped to the table
+            table = copy.copy(table)
+            table.title = None
+        out.print(table)
+
+
+def print_json(document: dict) -> None:
+    """One JSON document on stdout, nothing else (plain write: no Rich markup or wrapping)."""
+    console.file.write(json.dumps(document, indent=2, allow_nan=False) + "\n")
 
 
 def summary_table(title: str, rows: Sequence[tuple[str, str]]) -> Table:
@@ -103,9 +144,7 @@ class ProgressBars:
 def _iso(stamp_ns: int | None) -> str:
     if stamp_ns is None:
         return "-"
-    when = datetime.fromtimestamp(stamp_ns // 1_000_000_000, tz=timezone.utc)
-    frac = stamp_ns % 1_000_000_000
-    return f"{when:%Y-%m-%dT%H:%M:%S}.{frac // 1_000_000:03d}Z ({stamp_ns * 1e-9:.3f} s)"
+    return f"{_iso_utc(stamp_ns)[:23]}Z ({stamp_ns * 1e-9:.3f} s)"
 
 
 def _cloud_table(topic: str, cloud: CloudInfo) -> Table:
@@ -151,9 +190,38 @@ def log_info_tables(info: LogInfo) -> tuple[Table, ...]:
     clouds = [_cloud_table(t.topic, t.cloud) for t in info.topics if t.cloud is not None]
     chosen = summary_table("Topics mcl3d uses (--points-topic, --imu-topic, --odom-topic, "
                            "--gt-topic override)",
-                           [(kind, with_flag(value, info.selection_settings.get(kind)))
-                            for kind, value in info.selection.items()])
+                           [(kind, with_flag(c.problem, c.setting) if c.problem
+                             else c.topic or "-") for kind, c in info.selection.items()])
     return (head, topics, *clouds, chosen)
+
+
+def log_info_json(info: LogInfo) -> dict:
+    """`mcl3d info --json`: the library's facts plus, where a topic choice has a problem,
+    the flag that resolves it."""
+    document = info.as_dict()
+    for choice in document["selection"].values():
+        choice["flag"] = flag_of(choice["setting"])
+    return document
+
+
+def map_info_table(info: MapInfo) -> Table:
+    """`mcl3d map-info`'s table: the header, blocks, voxels, memory, and the exports written."""
+    from mcl3d.mapping.pipeline import map_rows
+
+    header, exports = info.header, info.exports
+    rows = [("file", str(info.path)),
+            ("format", f"{header['format']} v{header['format_version']} (mcl3d "
+                       f"{header.get('mcl3d_version', '?')}, {header.get('created_utc', '?')})"),
+            ("frame", header["frame_id"]),
+            ("precision", header["distance_dtype"]),
+            *map_rows(info.geometry, info.stats),
+            ("built from", json.dumps(header.get("source", {}))),
+            ("build time", f"{header.get('build', {}).get('seconds', '?')} s")]
+    if info.mesh_path:
+        rows.append(("mesh", f"{exports.mesh_triangles} triangles -> {info.mesh_path}"))
+    if info.points_path:
+        rows.append(("points", f"{exports.surface_points} points -> {info.points_path}"))
+    return summary_table("Map", rows)
 
 
 def evaluation_tables(result: Evaluation, ref: Path, est: Path, plot: Path | None,

@@ -2,12 +2,15 @@
 
 TUM rows are exactly `t x y z qx qy qz qw` (8 space-separated columns, no trailing
 delimiter) so that every file we write loads in `evo_ape tum` unchanged. KITTI rows are the
-12 numbers of the row-major 3x4 `[R|t]`; they carry no stamps.
+12 numbers of the row-major 3x4 `[R|t]`; they carry no stamps. Stamps known as integer
+nanoseconds (from a log, or parsed exactly from a TUM file's decimal text) are kept as such,
+written back exactly and compared exactly (CONVENTIONS §6).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from decimal import Decimal, InvalidOperation
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +18,7 @@ import numpy as np
 from mcl3d.core.errors import TrajectoryError
 from mcl3d.core.geometry import interpolate_se3, rot_to_quat, se3_from_tq
 from mcl3d.core.outputs import atomic_open
+from mcl3d.io.logs.faults import format_stamp
 
 TUM_COLUMNS = "t x y z qx qy qz qw"
 FORMATS = ("auto", "tum", "kitti")
@@ -24,13 +28,21 @@ _QUAT_NORM_TOL = 1e-2   # |‖q‖ − 1| allowed in TUM rows printed with few d
 
 @dataclass(eq=False)
 class Trajectory:
-    """Poses `T_world_sensor` (N, 4, 4) at strictly increasing stamps (N,) in seconds.
+    """Poses `T_world_sensor` (N, 4, 4) at strictly increasing stamps (N,) in seconds, and
+    the same stamps in integer ns when they are known exactly.
 
     Compared by identity (eq=False): `==` on arrays has no single truth value.
     """
 
     stamps_s: np.ndarray
     poses: np.ndarray
+    stamps_ns: np.ndarray | None = None  # (N,) int64, exact; None when only seconds are known
+
+    @classmethod
+    def from_ns(cls, stamps_ns, poses) -> Trajectory:
+        """A trajectory at integer-ns stamps (seconds as `stamps_ns * 1e-9`)."""
+        stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
+        return cls(stamps_ns * 1e-9, poses, stamps_ns)
 
     def __post_init__(self) -> None:
         self.stamps_s = np.asarray(self.stamps_s, dtype=np.float64)
@@ -49,6 +61,17 @@ class Trajectory:
                 f"trajectory stamps must be strictly increasing: stamp {i + 1} "
                 f"({self.stamps_s[i + 1]:.9f} s) does not come after stamp {i} "
                 f"({self.stamps_s[i]:.9f} s)")
+        if self.stamps_ns is not None:
+            self.stamps_ns = np.asarray(self.stamps_ns, dtype=np.int64)
+            if self.stamps_ns.shape != self.stamps_s.shape:
+                raise TrajectoryError(f"a trajectory needs as many ns stamps as poses; got "
+                                      f"{self.stamps_ns.shape} for {n}")
+
+    def range_ns(self) -> tuple[int, int]:
+        """(first, last) stamp in integer ns: exact when known, else rounded from seconds."""
+        if self.stamps_ns is not None:
+            return int(self.stamps_ns[0]), int(self.stamps_ns[-1])
+        return round(float(self.stamps_s[0]) * 1e9), round(float(self.stamps_s[-1]) * 1e9)
 
     def __len__(self) -> int:
         return int(self.stamps_s.shape[0])
@@ -163,13 +186,33 @@ def read_tum(path) -> Trajectory:
             f"{path}: line {rows[i][0]} has a quaternion of norm {norms[i]:.6g}, not 1; "
             f"TUM columns are {TUM_COLUMNS}")
     _check_stamps(path, rows, values[:, 0])
-    return Trajectory(values[:, 0], se3_from_tq(values[:, 1:4], values[:, 4:8]))
+    return Trajectory(values[:, 0], se3_from_tq(values[:, 1:4], values[:, 4:8]),
+                      _stamps_ns(path, rows))
+
+
+def _stamps_ns(path: Path, rows: list[tuple[int, list[str]]]) -> np.ndarray | None:
+    """The first column's stamps in integer ns, exactly from their decimal text; None when one
+    does not fit in int64 ns (the seconds then stand alone)."""
+    try:
+        stamps = [int(Decimal(tokens[0]).scaleb(9).to_integral_value()) for _, tokens in rows]
+        ns = np.array(stamps, dtype=np.int64)
+    except (InvalidOperation, OverflowError):
+        return None
+    return ns if (np.diff(ns) > 0).all() else None
+
+
+def _stamp_text(traj: Trajectory) -> list[str]:
+    """'%.9f' stamps; integer-ns ones exactly, not through a float."""
+    if traj.stamps_ns is None:
+        return [f"{t:.9f}" for t in traj.stamps_s]
+    return [format_stamp(int(t)) for t in traj.stamps_ns]
 
 
 def _tum_text(traj: Trajectory) -> str:
-    rows = np.column_stack((traj.stamps_s, traj.positions(), rot_to_quat(traj.poses[:, :3, :3])))
-    return f"# {TUM_COLUMNS}\n" + "".join(" ".join(f"{v:.9f}" for v in row) + "\n"
-                                          for row in rows)
+    rows = np.column_stack((traj.positions(), rot_to_quat(traj.poses[:, :3, :3])))
+    return f"# {TUM_COLUMNS}\n" + "".join(
+        stamp + " " + " ".join(f"{v:.9f}" for v in row) + "\n"
+        for stamp, row in zip(_stamp_text(traj), rows, strict=True))
 
 
 def write_tum(path, traj: Trajectory) -> None:

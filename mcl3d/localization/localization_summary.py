@@ -4,12 +4,13 @@ summary.json and shown as the CLI's table (`summary_rows`)."""
 from __future__ import annotations
 
 import contextlib
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
 from mcl3d.core import geometry
 from mcl3d.evaluation.metrics import evaluate
+from mcl3d.io.logs.faults import LogFaults
 from mcl3d.io.trajectory import Trajectory
 from mcl3d.localization.state import STAGES, FilterState, LocalizationResult
 
@@ -48,10 +49,11 @@ class LocalizeSummary:
     ate_all: GroundTruthErrors | None = None
     ate_after_convergence: GroundTruthErrors | None = None
     ate_rmse_m_evo: float | None = None  # ATE as evo computes it, a cross-check
+    faults: LogFaults = field(default_factory=LogFaults)  # the log's messages dropped
 
     def to_json(self) -> dict:
         """summary.json's content: the fields, without the ground-truth ones when absent."""
-        d = asdict(self)
+        d = {**asdict(self), "faults": self.faults.as_dict()}
         for key in OPTIONAL_KEYS:
             if d[key] is None:
                 del d[key]

@@ -49,9 +49,12 @@ def _csv_row(r: LocalizationResult, motion: str) -> str:
 
 
 def write_outputs(paths: dict[str, Path], results: list[LocalizationResult],
-                  motion_kinds: list[str], summary: LocalizeSummary, cfg: Section) -> None:
-    traj = Trajectory(np.array([r.stamp_s for r in results]),
-                      np.stack([r.T_map_lidar for r in results]))
+                  motion_kinds: list[str], summary: LocalizeSummary, cfg: Section,
+                  stamps_ns: list[int] | None = None) -> None:
+    """Every output; `stamps_ns` are the results' exact stamps, for the trajectory files."""
+    poses = np.stack([r.T_map_lidar for r in results])
+    traj = (Trajectory(np.array([r.stamp_s for r in results]), poses) if stamps_ns is None
+            else Trajectory.from_ns(stamps_ns, poses))
     write_tum(paths["tum"], traj)
     write_kitti(paths["kitti"], traj)
     with atomic_open(paths["csv"]) as f:

@@ -22,6 +22,7 @@ from mcl3d.core.config import Section
 from mcl3d.core.errors import InputError, RunInterrupted
 from mcl3d.core.outputs import output_folder
 from mcl3d.core.progress import Progress, ProgressCallback, report
+from mcl3d.io.logs.faults import LogFaults
 from mcl3d.io.logs.messages import PointCloud, PoseStamped
 from mcl3d.io.logs.reader import LogReader
 from mcl3d.io.logs.writer import LogWriter
@@ -87,6 +88,7 @@ class LocalizeResult:
     """What a run produced; `summary` is also summary.json and the CLI's table."""
 
     results: list[LocalizationResult] = field(default_factory=list)
+    stamps_ns: list[int] = field(default_factory=list)  # the results' scan stamps, exact
     motion_kinds: list[str] = field(default_factory=list)
     skipped_scans: int = 0
     warnings: list[str] = field(default_factory=list)
@@ -95,6 +97,7 @@ class LocalizeResult:
     interrupted: bool = False
     gt: tuple | None = None  # (stamps_ns, T_map_lidar) when the log has ground truth
     height_band_m: list[float] | None = None  # the band global init used, when auto
+    faults: LogFaults = field(default_factory=LogFaults)  # the log's messages dropped
 
 
 def run(request: LocalizeRequest, on_progress: ProgressCallback | None = None
@@ -121,7 +124,7 @@ def _run(req: LocalizeRequest, on_progress: ProgressCallback | None) -> Localize
         raise InputError(f"{req.log}: no scan could be localized ({out.skipped_scans} scans "
                          f"had fewer than {MIN_SCAN_POINTS} points in the range gate)")
     out.summary = _summary(out, req.config, info)
-    write_outputs(paths, out.results, out.motion_kinds, out.summary, req.config)
+    write_outputs(paths, out.results, out.motion_kinds, out.summary, req.config, out.stamps_ns)
     if out.interrupted:
         raise RunInterrupted(f"interrupted after {len(out.results)} scans; the trajectory so far "
                              f"is in {paths['tum']}")
@@ -133,13 +136,15 @@ def _run_filter(req: LocalizeRequest, tsdf, on_progress) -> LocalizeResult:
     out = LocalizeResult()
     with LogReader(Path(req.log), points_topic=topics.points, imu_topic=topics.imu,
                    odom_topic=topics.odom, gt_topic=topics.gt) as reader:
+        out.faults = reader.faults
         reader.require("points")
         n_scans = reader.count("points")
         out.gt = reader.ground_truth() if reader.topics.gt else None
         firsts = first_messages(reader, ("points", "imu", "odom"), cfg.localizer.init.imu_samples)
         if "points" not in firsts:
+            dropped = "; ".join(reader.faults.warnings())
             raise InputError(f"{req.log}: the point-cloud topic {reader.topics.points} has no "
-                             f"messages")
+                             f"usable scans" + (f": {dropped}" if dropped else ""))
         lidar_frame = firsts["points"].frame_id
         source = make_motion_source(reader, cfg.motion_source, firsts, lidar_frame, out.warnings)
         out.motion_source = source.kind
@@ -212,12 +217,7 @@ class _ScanLoop:
 
     def process(self, scan) -> bool:
         """Filter one scan; True when the run should stop (max_scans reached)."""
-        out, prev = self.out, self.prev_ns
-        if prev is not None and scan.stamp_ns <= prev:
-            out.warnings.append(f"scan at {scan.stamp_ns} ns does not come after the previous "
-                                f"one; skipped")
-            out.skipped_scans += 1
-            return False
+        out, prev = self.out, self.prev_ns  # the reader drops scans whose stamp goes back
         motion = self.source.motion(prev, scan.stamp_ns) if prev is not None else None
         twist = None
         if motion is not None and self.cfg.deskew and scan.times_s is not None:
@@ -233,6 +233,7 @@ class _ScanLoop:
             return False
         self.prev_ns = scan.stamp_ns
         out.results.append(result)
+        out.stamps_ns.append(scan.stamp_ns)
         out.motion_kinds.append("none" if motion is None else motion.kind)
         self.source.add_estimate(scan.stamp_ns, result.T_map_lidar,
                                  result.state == FilterState.CONVERGED)
@@ -282,6 +283,7 @@ def _summary(out: LocalizeResult, cfg: LocalizeConfig, info) -> LocalizeSummary:
         particles=cfg.localizer.particles, points=cfg.localizer.sensor.points,
         init=cfg.localizer.init.mode, height_band_m=out.height_band_m,
         converged_at_scan=conv, converged_after_s=after_s, converged_fraction=fraction,
-        final_state=res[-1].state.value, ms_per_update=stage_means(res), warnings=out.warnings)
+        final_state=res[-1].state.value, ms_per_update=stage_means(res), warnings=out.warnings,
+        faults=out.faults)
     summarize(res, summary, out.gt)
     return summary

@@ -20,6 +20,7 @@ from mcl3d.core.errors import InputError, MapError, PointCloudError, RunInterrup
 from mcl3d.core.outputs import check_writable
 from mcl3d.core.progress import Progress, ProgressCallback, report
 from mcl3d.io.logs.cloud_files import read_cloud_file
+from mcl3d.io.logs.faults import LogFaults, format_stamp
 from mcl3d.io.logs.reader import LogReader
 from mcl3d.io.trajectory import Trajectory, read_trajectory
 from mcl3d.maps import build, export, map_file
@@ -37,6 +38,8 @@ MESH_ONLY_SUFFIXES = (".obj", ".stl", ".off", ".gltf", ".glb")
 POINT_ONLY_SUFFIXES = (".pcd", ".bin")
 HDF5_SUFFIXES = (".h5", ".hdf5")
 FUSE_STAGE = "fusing scans"  # the progress stage of a log's scans
+STAMP_TEXT_NS = 1_000  # a stamp written through float64 seconds (older files, other tools)
+# is only good to ~0.24 us at epoch times: a scan this close past an end counts as at the end
 
 
 @dataclass(frozen=True)
@@ -76,6 +79,7 @@ class BuildMapResult:
     n_scans: int = 0  # scans fused (log sources)
     n_points: int = 0  # points fused
     exports: MapExports = MapExports()
+    faults: LogFaults = field(default_factory=LogFaults)  # a log's messages dropped for faults
 
     @property
     def scans_per_s(self) -> float:
@@ -90,6 +94,7 @@ class _Built:
     source_info: dict  # the map file header's "source" entry
     n_scans: int = 0
     n_points: int = 0
+    faults: LogFaults = field(default_factory=LogFaults)
 
 
 def run(request: BuildMapRequest, on_progress: ProgressCallback | None = None
@@ -227,10 +232,12 @@ def _build_from_log(req: BuildMapRequest, on_progress: ProgressCallback | None) 
             needed = build.grown_capacity(tsdf, cfg)
             tsdf.destroy()
     tsdf.finalize()
-    return _Built(tsdf, {"kind": "log", "path": str(req.source), "points_topic":
-                         reader.topics.points, "poses": traj_source, "scans": fuser.n_scans,
-                         "empty_scans_skipped": scans.n_empty, "deskewed": scans.deskewed},
-                  fuser.n_scans, fuser.n_points)
+    source = {"kind": "log", "path": str(req.source), "points_topic": reader.topics.points,
+              "poses": traj_source, "scans": fuser.n_scans,
+              "empty_scans_skipped": scans.n_empty, "deskewed": scans.deskewed}
+    if reader.faults.tallies:
+        source["faults"] = reader.faults.as_dict()
+    return _Built(tsdf, source, fuser.n_scans, fuser.n_points, reader.faults)
 
 
 def _poses(req: BuildMapRequest, reader: LogReader) -> tuple[Trajectory, str]:
@@ -242,7 +249,7 @@ def _poses(req: BuildMapRequest, reader: LogReader) -> tuple[Trajectory, str]:
     order = np.argsort(stamps_ns, kind="stable")
     stamps_ns, poses = stamps_ns[order], poses[order]
     keep = np.concatenate([[True], np.diff(stamps_ns) > 0])
-    return (Trajectory(stamps_ns[keep] * 1e-9, poses[keep]),
+    return (Trajectory.from_ns(stamps_ns[keep], poses[keep]),
             f"{req.source} topic {reader.topics.gt}")
 
 
@@ -255,13 +262,17 @@ def _point_times(cloud) -> np.ndarray | None:
 
 
 def _scan_pose(traj: Trajectory, cloud):
-    """(T_start, T_end, alpha) for a scan: its per-point times deskew it when present."""
-    stamp_s = cloud.stamp_ns * 1e-9
-    t0, t1 = traj.stamps_s[0], traj.stamps_s[-1]
-    if not (t0 <= stamp_s <= t1):
+    """(T_start, T_end, alpha) for a scan: its per-point times deskew it when present. The
+    scan is inside the trajectory by its integer-ns stamp; its float seconds may round past an
+    end that has the same stamp, so they are clipped to the ends."""
+    first_ns, last_ns = traj.range_ns()
+    if not first_ns - STAMP_TEXT_NS <= cloud.stamp_ns <= last_ns + STAMP_TEXT_NS:
         raise TrajectoryError(
-            f"scan at {stamp_s:.9f} s is outside the trajectory ({t0:.9f}..{t1:.9f} s); "
-            f"give a trajectory that covers the log or trim the log", setting="trajectory")
+            f"scan at {format_stamp(cloud.stamp_ns)} s is outside the trajectory "
+            f"({format_stamp(first_ns)}..{format_stamp(last_ns)} s); give a trajectory that "
+            f"covers the log or trim the log", setting="trajectory")
+    t0, t1 = traj.stamps_s[0], traj.stamps_s[-1]
+    stamp_s = min(max(cloud.stamp_ns * 1e-9, t0), t1)
     times = _point_times(cloud)
     if times is None:
         T = traj.interpolate_poses([stamp_s])[0]
@@ -294,6 +305,7 @@ def _scan_bounds(req: BuildMapRequest, reader: LogReader, traj: Trajectory) -> _
         world = pts @ T[:3, :3].T.astype(np.float32) + T[:3, 3].astype(np.float32)
         lo, hi = np.minimum(lo, world.min(axis=0)), np.maximum(hi, world.max(axis=0))
     if n_scans == n_empty:
+        n_scans += reader.faults.count("scan_empty")
         raise PointCloudError(
             f"{req.source}: none of its {n_scans} scans has points between "
             f"{cfg.min_range_m} and {cfg.max_range_m} m; nothing to build a map from")
@@ -328,7 +340,7 @@ def _write(req: BuildMapRequest, built: _Built, kind: str, seconds: float) -> Bu
         surface_points=(export.write_points(req.export_points, tsdf.geometry, data)
                         if req.export_points else None))
     return BuildMapResult(req.source, req.output, kind, header, tsdf.geometry,
-                          stats, seconds, built.n_scans, built.n_points, exports)
+                          stats, seconds, built.n_scans, built.n_points, exports, built.faults)
 
 
 # ------------------------------------------------------------------ summary rows

@@ -3,7 +3,7 @@ table, and its accuracy against the log's ground truth."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Protocol
 
@@ -11,6 +11,7 @@ import numpy as np
 
 from mcl3d.core.errors import Mcl3dError
 from mcl3d.evaluation.metrics import Evaluation, evaluate
+from mcl3d.io.logs.faults import LogFaults
 from mcl3d.io.trajectory import Trajectory
 
 RPE_DELTA_M = 1.0  # RPE pose pairs this far apart along the path
@@ -60,6 +61,7 @@ class OdometrySummary:
     num_warnings: int
     accuracy: OdometryAccuracy | None  # None without ground truth
     accuracy_error: str | None = None  # why the accuracy could not be computed
+    faults: LogFaults = field(default_factory=LogFaults)  # the log's messages dropped
 
     def as_dict(self) -> dict:
         return {"scans": self.scans, "interrupted": self.interrupted,
@@ -67,7 +69,8 @@ class OdometrySummary:
                 "ms_per_frame": self.ms_per_frame.as_dict(),
                 "degenerate_frames": self.degenerate_frames, "notes": self.notes,
                 "warnings": self.warnings, "num_warnings": self.num_warnings,
-                "evaluation": evaluation_entry(self.accuracy, self.accuracy_error)}
+                "evaluation": evaluation_entry(self.accuracy, self.accuracy_error),
+                "faults": self.faults.as_dict()}
 
 
 class Accuracy(Protocol):

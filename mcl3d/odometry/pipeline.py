@@ -4,7 +4,8 @@ Steps: check the outputs, open the log, find the lidar-IMU extrinsic, run `Lidar
 every scan with the IMU samples since the previous one, write the trajectory (TUM and KITTI),
 the per-frame relative motions with covariances, the effective config, and a summary (ms per
 frame, keyframes, warnings, ATE/RPE and drift against the log's ground truth when it has
-one). Ctrl-C keeps the frames done so far. The contract: `run(request, on_progress=None)`.
+one, the messages dropped for faults). Ctrl-C keeps the frames done so far. The contract:
+`run(request, on_progress=None)`.
 """
 
 from __future__ import annotations
@@ -118,7 +119,7 @@ def _run(req: OdometryRequest, on_progress: ProgressCallback | None) -> Odometry
 def _write(outputs: OdometryOutputs, frames: list[OdometryFrame], cfg: OdometryConfig,
            feed: LidarImuFeed, interrupted: bool) -> OdometrySummary:
     stamps = np.array([f.stamp_ns for f in frames], dtype=np.int64)
-    traj = Trajectory(stamps * 1e-9, np.stack([f.T_world_lidar for f in frames]))
+    traj = Trajectory.from_ns(stamps, np.stack([f.T_world_lidar for f in frames]))
     write_tum(outputs.tum, traj)
     write_kitti(outputs.kitti, traj)
     with atomic_open(outputs.motion, "wb") as f:
@@ -138,7 +139,7 @@ def _write(outputs: OdometryOutputs, frames: list[OdometryFrame], cfg: OdometryC
         ms_per_frame=FrameTimesMs.of(ms),
         degenerate_frames=int(sum(f.degenerate for f in frames)), notes=feed.notes,
         warnings=warnings[:MAX_LISTED_WARNINGS], num_warnings=len(warnings),
-        accuracy=accuracy, accuracy_error=accuracy_error)
+        accuracy=accuracy, accuracy_error=accuracy_error, faults=feed.reader.faults)
     with atomic_open(outputs.summary, "w") as f:
         json.dump(summary.as_dict(), f, indent=2)
     return summary

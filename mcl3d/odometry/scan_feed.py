@@ -15,10 +15,10 @@ from mcl3d.io.trajectory import Trajectory
 SAME_CLOCK_TOLERANCE_S = 1.0  # IMU stamps further than this from the scan's: another clock
 
 
-def scans_with_imu(reader: LogReader, kinds: tuple[str, ...], gt_stamps_s: list[float],
+def scans_with_imu(reader: LogReader, kinds: tuple[str, ...], gt_stamps_ns: list[int],
                    gt_poses: list[np.ndarray]) -> Iterator[tuple]:
     """(cloud, IMU rows since the previous scan, IMU frame) per scan, ground truth appended
-    to `gt_stamps_s` / `gt_poses` on the way. IMU rows are (stamp_s, wx, wy, wz, ax, ay, az);
+    to `gt_stamps_ns` / `gt_poses` on the way. IMU rows are (stamp_s, wx, wy, wz, ax, ay, az);
     the last sample before a scan is kept for the next one: it holds until the next sample,
     across the scan stamp."""
     imu_frame = "imu"
@@ -29,7 +29,7 @@ def scans_with_imu(reader: LogReader, kinds: tuple[str, ...], gt_stamps_s: list[
             pending.append((msg.stamp_ns * 1e-9, *msg.angular_velocity,
                             *msg.linear_acceleration))
         elif kind == "gt":
-            gt_stamps_s.append(msg.stamp_ns * 1e-9)
+            gt_stamps_ns.append(msg.stamp_ns)
             gt_poses.append(msg.T)
         else:
             rows = np.array(pending, dtype=np.float64).reshape(-1, 7)
@@ -49,7 +49,7 @@ class LidarImuFeed:
         self.reader = reader
         self.use_imu = use_imu
         self.notes: list[str] = []
-        self.gt_stamps_s: list[float] = []
+        self.gt_stamps_ns: list[int] = []
         self.gt_poses: list[np.ndarray] = []
 
     def __iter__(self) -> Iterator[tuple]:
@@ -59,7 +59,7 @@ class LidarImuFeed:
         if not use_imu:
             self.notes.append("no IMU used: the motion is predicted with constant velocity")
         T_lidar_imu, extrinsic_known = np.eye(4), False
-        for cloud, imu_rows, imu_frame in scans_with_imu(reader, kinds, self.gt_stamps_s,
+        for cloud, imu_rows, imu_frame in scans_with_imu(reader, kinds, self.gt_stamps_ns,
                                                          self.gt_poses):
             if use_imu and len(imu_rows) and not _same_clock(imu_rows, cloud.stamp_ns):
                 use_imu = False
@@ -81,11 +81,12 @@ class LidarImuFeed:
 
     def ground_truth(self) -> Trajectory | None:
         """The ground truth read so far, sorted, one pose per stamp; None under two poses."""
-        if len(self.gt_stamps_s) < 2:
+        if len(self.gt_stamps_ns) < 2:
             return None
-        order = np.argsort(self.gt_stamps_s, kind="stable")
-        stamps, keep = np.unique(np.asarray(self.gt_stamps_s)[order], return_index=True)
-        return Trajectory(stamps, np.asarray(self.gt_poses)[order][keep])
+        order = np.argsort(self.gt_stamps_ns, kind="stable")
+        stamps, keep = np.unique(np.asarray(self.gt_stamps_ns, np.int64)[order],
+                                 return_index=True)
+        return Trajectory.from_ns(stamps, np.asarray(self.gt_poses)[order][keep])
 
 
 def _same_clock(imu_rows: np.ndarray, stamp_ns: int) -> bool:

@@ -6,9 +6,9 @@ samples since the previous one, then write the representative particle's traject
 KITTI; every scan placed by its keyframes, so loop corrections show), the representative of
 each scan as it was chosen online, the odometry front-end's trajectory, the map (union of
 keyframe clouds, PLY), the per-frame log (CSV), the effective config and a summary (ATE of
-SLAM and of odometry alone against the log's ground truth). Optionally build a TSDF map from
-the result, so `slam` -> `localize` is one pipeline. Ctrl-C keeps everything done so far.
-The contract: `run(request, on_progress=None)`.
+SLAM and of odometry alone against the log's ground truth, messages dropped for faults).
+Optionally build a TSDF map from the result, so `slam` -> `localize` is one pipeline.
+Ctrl-C keeps everything done so far. The contract: `run(request, on_progress=None)`.
 """
 
 from __future__ import annotations
@@ -157,10 +157,10 @@ def _write(outputs: SlamOutputs, slam: MonteCarloSlam, feed: LidarImuFeed,
            interrupted: bool) -> SlamSummary:
     frames = slam.frames
     stamps_ns, poses = slam.trajectory()
-    stamps_s = stamps_ns * 1e-9
-    trajectories = {"slam": Trajectory(stamps_s, poses),
-                    "online": Trajectory(stamps_s, np.stack([f.T_world_lidar for f in frames])),
-                    "odometry": Trajectory(stamps_s, np.stack([f.T_odom_lidar for f in frames]))}
+    trajectories = {
+        "slam": Trajectory.from_ns(stamps_ns, poses),
+        "online": Trajectory.from_ns(stamps_ns, np.stack([f.T_world_lidar for f in frames])),
+        "odometry": Trajectory.from_ns(stamps_ns, np.stack([f.T_odom_lidar for f in frames]))}
     write_tum(outputs.tum, trajectories["slam"])
     write_kitti(outputs.kitti, trajectories["slam"])
     write_tum(outputs.online, trajectories["online"])
@@ -168,7 +168,8 @@ def _write(outputs: SlamOutputs, slam: MonteCarloSlam, feed: LidarImuFeed,
     write_ply(outputs.map, voxel_downsample(slam.map_points(), slam.cfg.front_end.scan_voxel_m))
     _write_frames(outputs.frames, frames)
     config_io.save(slam.cfg, outputs.config)
-    summary = summarize(slam, trajectories, feed.ground_truth(), feed.notes, interrupted)
+    summary = summarize(slam, trajectories, feed.ground_truth(), feed.notes, interrupted,
+                        feed.reader.faults)
     with atomic_open(outputs.summary, "w") as f:
         json.dump(summary.as_dict(), f, indent=2)
     return summary

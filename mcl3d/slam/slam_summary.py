@@ -3,13 +3,14 @@ and the accuracy of its trajectories against the log's ground truth."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from mcl3d.core.errors import Mcl3dError
 from mcl3d.evaluation.metrics import evaluate
+from mcl3d.io.logs.faults import LogFaults
 from mcl3d.io.trajectory import Trajectory
 from mcl3d.mapping.pipeline import format_bytes
 from mcl3d.odometry.odometry_summary import FrameTimesMs, evaluation_entry
@@ -63,6 +64,7 @@ class SlamSummary:
     num_odometry_warnings: int
     accuracy: SlamAccuracy | None  # None without ground truth
     accuracy_error: str | None = None  # why the accuracy could not be computed
+    faults: LogFaults = field(default_factory=LogFaults)  # the log's messages dropped
 
     def as_dict(self) -> dict:
         return {
@@ -76,12 +78,15 @@ class SlamSummary:
             "particle_state_bytes": self.particle_state_bytes, "notes": self.notes,
             "odometry_warnings": self.odometry_warnings,
             "num_odometry_warnings": self.num_odometry_warnings,
-            "evaluation": evaluation_entry(self.accuracy, self.accuracy_error)}
+            "evaluation": evaluation_entry(self.accuracy, self.accuracy_error),
+            "faults": self.faults.as_dict()}
 
 
 def summarize(slam: MonteCarloSlam, trajectories: dict[str, Trajectory],
-              gt: Trajectory | None, notes: list[str], interrupted: bool) -> SlamSummary:
-    """The summary of a run; `trajectories` are "slam", "online" and "odometry"."""
+              gt: Trajectory | None, notes: list[str], interrupted: bool,
+              faults: LogFaults | None = None) -> SlamSummary:
+    """The summary of a run; `trajectories` are "slam", "online" and "odometry"; `faults`
+    the log's messages dropped."""
     frames = slam.frames
     steady = frames[WARM_UP_FRAMES:] or frames
     ms = {s: float(np.mean([f.timings_ms.get(s, 0.0) for f in steady])) for s in STAGES}
@@ -100,7 +105,7 @@ def summarize(slam: MonteCarloSlam, trajectories: dict[str, Trajectory],
         ms_per_frame=FrameTimesMs.of(totals), ms_per_stage=ms,
         particle_state_bytes=slam.particles.state_bytes(), notes=notes,
         odometry_warnings=warnings[:MAX_LISTED_WARNINGS], num_odometry_warnings=len(warnings),
-        accuracy=accuracy, accuracy_error=accuracy_error)
+        accuracy=accuracy, accuracy_error=accuracy_error, faults=faults or LogFaults())
 
 
 def _evaluate(trajectories: dict[str, Trajectory], gt: Trajectory | None

@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 from support import tsdf_world as world
 from typer.testing import CliRunner
 
@@ -71,6 +72,58 @@ def test_build_from_mesh_then_map_info_and_exports(ti_runtime, room_files, tmp_p
     assert (tmp_path / "pts.pcd").stat().st_size > 1000
     again = _invoke("build-map", d / "room.ply", "-o", out)
     assert "(--force)" in _failed(again)
+    _map_info_json_agrees_with_the_file_and_the_table(out, info.stdout, tmp_path)
+
+
+def _map_info_json_agrees_with_the_file_and_the_table(map_path, table, tmp_path):
+    """`map-info --json` (run as a user runs it) prints one JSON document, nothing else on
+    stdout, whose numbers match an independent read of the file (numpy alone) and the
+    table's text."""
+    import json
+    import subprocess
+    import sys
+
+    import open3d as o3d
+
+    result = subprocess.run([sys.executable, "-m", "mcl3d", "map-info", str(map_path), "--json",
+                             "--export-mesh", str(tmp_path / "m.ply")],
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    doc = json.loads(result.stdout)
+    with np.load(map_path) as npz:
+        header = json.loads(str(npz["header"]))
+        sdf, weight = npz["sdf"], npz["weight"]
+        n_blocks, n_free = len(npz["block_coords"]), len(npz["free_coords"])
+    assert doc["schema"] == "mcl3d.map_info/1" and doc["path"] == str(map_path)
+    assert (doc["format"], doc["format_version"]) == ("mcl3d-tsdf", 1)
+    for key in ("mcl3d_version", "created_utc", "frame_id", "voxel_size_m", "truncation_m",
+                "origin_m", "coarse_dims", "source", "build"):
+        assert doc[key] == header[key], key
+    assert doc["precision"] == header["distance_dtype"] == "float32"
+    assert doc["block_size_m"] == pytest.approx(8 * header["voxel_size_m"])
+    hi = np.add(header["origin_m"], np.multiply(header["coarse_dims"], doc["block_size_m"]))
+    assert doc["extent_lo_m"] == pytest.approx(header["origin_m"])
+    assert doc["extent_hi_m"] == pytest.approx(hi) and doc["extent_size_m"] == pytest.approx(
+        hi - header["origin_m"])
+    cells = int(np.prod(header["coarse_dims"]))
+    assert doc["blocks"] == {"allocated": n_blocks, "free": n_free,
+                             "unknown_cells": cells - n_blocks - n_free}
+    surface = (weight > 0) & (np.abs(sdf) < 0.5 * header["voxel_size_m"] * np.sqrt(3))
+    assert doc["voxels"]["surface"] == int(surface.sum())
+    assert doc["voxels"]["observed"] == int((weight > 0).sum()) + 512 * n_free
+    memory = doc["memory"]
+    assert memory["file_bytes"] == map_path.stat().st_size
+    assert memory["pool_bytes"] == n_blocks * memory["bytes_per_block"]
+    assert memory["coarse_bytes"] == 4 * cells
+    assert memory["loaded_bytes"] == memory["pool_bytes"] + memory["coarse_bytes"]
+    triangles = len(o3d.io.read_triangle_mesh(str(tmp_path / "m.ply")).triangles)
+    assert doc["exports"] == {"mesh": {"path": str(tmp_path / "m.ply"), "triangles": triangles},
+                              "points": None}
+    blocks = doc["blocks"]
+    assert (f"{blocks['allocated']} allocated, {blocks['free']} free, "
+            f"{blocks['unknown_cells']} unknown") in table
+    assert f"{doc['voxels']['surface']} on the surface" in table
+    assert f"({memory['bytes_per_block']} B/block)" in table
 
 
 def test_build_from_point_cloud_with_f16(ti_runtime, room_files, tmp_path):
@@ -111,6 +164,57 @@ def test_build_from_log_with_ground_truth_and_trajectory(ti_runtime, room_files,
     message = _failed(bad)
     assert "outside the trajectory" in message and "(--trajectory)" in message
     assert not bad_out.exists() and not list(tmp_path.glob(".bad.tsdf*"))
+
+
+def test_trajectory_ending_exactly_at_the_last_scan_is_inside(ti_runtime, room_files, tmp_path):
+    """Stamps compare as integer ns: a TUM pose at 1317000015.300000000 s covers the scan at
+    1317000015300000000 ns (as floats they round to ...15.299999952 and ...15.300000191)."""
+    from mcl3d.maps.map_file import read_header
+
+    _, scans = room_files
+    stamps = [1_317_000_015_100_000_000 + i * 100_000_000 for i in range(3)]
+    log = tmp_path / "room.mcap"
+    _write_log(log, scans, world.POSES, stamps)
+    rows = [" ".join(f"{v:.9f}" for v in (*T[:3, 3], *Rotation.from_matrix(T[:3, :3]).as_quat()))
+            for T in world.POSES]
+    # exact stamps, and stamps written through float64 seconds (off by up to ~0.2 us)
+    for name, stamp_text in (("exact", lambda ns: f"{ns // 10**9}.{ns % 10**9:09d}"),
+                             ("float", lambda ns: f"{ns * 1e-9:.9f}")):
+        traj = tmp_path / f"{name}.tum"
+        traj.write_text("".join(f"{stamp_text(ns)} {row}\n"
+                                for ns, row in zip(stamps, rows, strict=True)))
+        out = tmp_path / f"{name}.tsdf"
+        result = _invoke("build-map", log, "-o", out, "--trajectory", traj)
+        assert result.exit_code == 0, result.output
+        assert read_header(out)["source"]["scans"] == 3
+
+
+def test_faults_in_the_log_are_dropped_counted_and_named(ti_runtime, room_files, tmp_path):
+    """A scan published twice and a NaN ground-truth pose: the map is built from the rest,
+    the header's source lists the faults and the CLI names each kind once."""
+    from mcl3d.io.logs.messages import PointCloud, PoseStamped
+    from mcl3d.io.logs.writer import LogWriter
+    from mcl3d.maps.map_file import read_header
+
+    _, scans = room_files
+    log = tmp_path / "faults.mcap"
+    with LogWriter(log) as w:
+        for k, (pts, T) in enumerate(zip(scans, world.POSES, strict=True)):
+            stamp = STAMP0_NS + k * 100_000_000
+            w.write_pose("/ground_truth", PoseStamped(stamp, "map", T))
+            w.write_points("/lidar/points", PointCloud(stamp, "lidar", pts, None))
+            if k == 1:
+                w.write_points("/lidar/points", PointCloud(stamp, "lidar", pts, None))
+                w.write_pose("/ground_truth", PoseStamped(stamp + 50_000_000, "map",
+                                                          np.full((4, 4), np.nan)))
+    result = _invoke("build-map", log, "-o", tmp_path / "m.tsdf")
+    assert result.exit_code == 0, result.output
+    assert "1 scan dropped with the same stamp" in result.output
+    assert "1 ground-truth pose dropped with NaN or inf" in result.output
+    source = read_header(tmp_path / "m.tsdf")["source"]
+    assert source["scans"] == 3
+    assert {k: v["count"] for k, v in source["faults"].items()} == {
+        "scan_repeated_stamp": 1, "ground_truth_not_finite": 1}
 
 
 def test_pipeline_reports_every_scan_and_returns_typed_results(ti_runtime, room_files,
@@ -175,3 +279,8 @@ def test_errors_are_one_red_line_and_exit_1(tmp_path):
     assert out.returncode == 1
     assert "error:" in out.stderr and "not an mcl3d map" in out.stderr
     assert "Traceback" not in out.stderr
+    out = subprocess.run([sys.executable, "-m", "mcl3d", "map-info", str(broken), "--json"],
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 1 and out.stdout == ""
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error:") and "not an mcl3d map" in lines[0]

@@ -5,6 +5,7 @@ Real data: ouster_os1_64_mcap (MIT licence).
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 
@@ -18,11 +19,35 @@ from mcl3d.io.logs.reader import LogReader
 from mcl3d.io.logs.writer import LogWriter
 
 T0 = 1_700_000_000_000_000_000
+POINTFIELD_TYPES = {1: "int8", 2: "uint8", 3: "int16", 4: "uint16", 5: "int32", 6: "uint32",
+                    7: "float32", 8: "float64"}  # sensor_msgs/PointField constants
 
 
-def mcl3d(*args: str, cwd=None) -> subprocess.CompletedProcess:
+def mcl3d(*args: str, cwd=None, columns: str | None = "200") -> subprocess.CompletedProcess:
+    env = {"PATH": ""} if columns is None else {"COLUMNS": columns, "PATH": ""}
     return subprocess.run([sys.executable, "-m", "mcl3d", *map(str, args)], capture_output=True,
-                          text=True, cwd=cwd, env={"COLUMNS": "200", "PATH": ""}, timeout=120)
+                          text=True, cwd=cwd, env=env, timeout=120)
+
+
+def info_json(*args: str) -> dict:
+    """`mcl3d info --json`: exit 0, and stdout is exactly one JSON document."""
+    result = mcl3d("info", *args, "--json")
+    assert result.returncode == 0, result.stderr
+    return json.loads(result.stdout)
+
+
+def mcap_summary(path) -> tuple[dict[str, tuple[str, int]], int, int]:
+    """Topic -> (schema name, message count), start and end ns, from the mcap library alone."""
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    stats = summary.statistics
+    topics: dict[str, tuple[str, int]] = {}
+    for c in summary.channels.values():  # a topic may have several channels
+        count = topics.get(c.topic, ("", 0))[1] + stats.channel_message_counts.get(c.id, 0)
+        topics[c.topic] = (summary.schemas[c.schema_id].name, count)
+    return topics, stats.message_start_time, stats.message_end_time
 
 
 def assert_one_line_error(result: subprocess.CompletedProcess, *words: str) -> None:
@@ -98,6 +123,114 @@ def test_info_on_a_ros2_bag_folder(tmp_path):
     assert result.returncode == 0, result.stderr
     assert "ROS 2 bag folder (sqlite3)" in result.stdout
     assert "unorganized, 20 points" in result.stdout
+
+
+def first_cloud(path, topic: str):
+    """The first message of a cloud topic, decoded by the mcap and rosbags libraries alone."""
+    from mcap.reader import make_reader
+    from rosbags.typesys import Stores, get_typestore
+
+    with open(path, "rb") as f:
+        _schema, _channel, message = next(make_reader(f).iter_messages(topics=[topic]))
+    return get_typestore(Stores.ROS2_HUMBLE).deserialize_cdr(message.data,
+                                                             "sensor_msgs/msg/PointCloud2")
+
+
+def _same_type(mcap_schema: str, msgtype: str) -> bool:
+    return mcap_schema.replace("/msg/", "/") == msgtype.replace("/msg/", "/")
+
+
+def test_info_json_on_a_written_log(small_log):
+    doc = info_json(small_log)
+    assert doc["schema"] == "mcl3d.info/1" and doc["path"] == str(small_log)
+    assert doc["format"] == "MCAP (ros2)" and doc["profile"] == "ros2"
+    assert doc["size_bytes"] == small_log.stat().st_size
+    topics, start_ns, end_ns = mcap_summary(small_log)
+    assert (doc["start_ns"], doc["end_ns"]) == (start_ns, end_ns) == (T0, T0 + 400_000_000)
+    assert doc["start_utc"] == "2023-11-14T22:13:20.000000000Z"
+    assert doc["end_utc"] == "2023-11-14T22:13:20.400000000Z"
+    assert doc["duration_ns"] == 400_000_000 and doc["duration_s"] == pytest.approx(0.4)
+    assert doc["message_count"] == sum(n for _, n in topics.values()) == 15
+    by_name = {t["name"]: t for t in doc["topics"]}
+    assert set(by_name) == set(topics)
+    for name, (schema, count) in topics.items():
+        assert _same_type(schema, by_name[name]["type"]) and by_name[name]["count"] == count
+    points = by_name["/lidar/points"]
+    assert points["rate_hz"] == pytest.approx(10.0) and points["frame_ids"] == ["lidar"]
+    cloud = points["cloud"]
+    assert (cloud["organized"], cloud["height"], cloud["width"]) == (False, 1, 20)
+    first = first_cloud(small_log, "/lidar/points")
+    assert (cloud["height"], cloud["width"]) == (first.height, first.width)
+    assert [(f["name"], f["datatype"], f["count"]) for f in cloud["fields"]] == [
+        (f.name, POINTFIELD_TYPES[f.datatype], f.count) for f in first.fields]
+    assert cloud["time_field"] == "t" and cloud["time_span_s"] == pytest.approx(0.1)
+    assert cloud["scans_decoded"] == 3
+    assert cloud["valid_points"] == {"min": 20, "mean": 20.0, "max": 20}
+    assert by_name["/imu/data"]["cloud"] is None and by_name["/imu/data"]["frame_ids"] == ["imu"]
+    assert doc["selection"] == {
+        "points": {"topic": "/lidar/points", "problem": None, "setting": None, "flag": None},
+        "imu": {"topic": "/imu/data", "problem": None, "setting": None, "flag": None},
+        "odom": {"topic": None, "problem": None, "setting": None, "flag": None},
+        "gt": {"topic": "/ground_truth", "problem": None, "setting": None, "flag": None}}
+
+
+def test_info_json_agrees_with_the_tables_on_the_real_ouster_mcap(shared_data):
+    log = shared_data / "ouster_os1_64_mcap" / "test.mcap"
+    doc = info_json(log)
+    tables = mcl3d("info", log).stdout
+    topics, start_ns, end_ns = mcap_summary(log)
+    assert (doc["start_ns"], doc["end_ns"]) == (start_ns, end_ns)
+    assert doc["start_utc"][:23] + "Z" in tables and f"{doc['duration_s']:.3f} s" in tables
+    assert doc["format"] == "MCAP (ros1)" and f"messages │ {doc['message_count']}" in tables
+    for topic in doc["topics"]:
+        assert topic["count"] == topics[topic["name"]][1]
+        row = next(line for line in tables.splitlines() if f" {topic['name']} " in line)
+        rate = "-" if topic["rate_hz"] is None else f"{topic['rate_hz']:.1f}"
+        assert f" {topic['count']} " in row and f" {rate} " in row
+        assert all(frame in row for frame in topic["frame_ids"])
+    cloud = next(t["cloud"] for t in doc["topics"] if t["name"] == "/os1_cloud_node/points")
+    assert f"organized {cloud['height']} x {cloud['width']}" in tables
+    valid = cloud["valid_points"]
+    assert f"min {valid['min']}, mean {valid['mean']:.0f}, max {valid['max']}" in tables
+    assert {"name": "ring", "datatype": "uint8", "count": 1} in cloud["fields"]
+
+
+def test_info_json_names_the_problem_and_its_flag(tmp_path):
+    path = tmp_path / "two.mcap"
+    with LogWriter(path) as w:
+        w.write_points("/front/points", cloud(T0))
+        w.write_points("/rear/points", cloud(T0 + 1))
+    points = info_json(path)["selection"]["points"]
+    assert points["topic"] is None and points["setting"] == "points_topic"
+    assert points["flag"] == "--points-topic"
+    assert "/front/points, /rear/points" in points["problem"] and "choose one" in points["problem"]
+    chosen = info_json(path, "--points-topic", "/rear/points")["selection"]["points"]
+    assert chosen == {"topic": "/rear/points", "problem": None, "setting": None, "flag": None}
+
+
+def test_piped_tables_keep_long_names_whole(tmp_path):
+    topic = "/sensors/lidar_front_left_upper/velodyne_points_motion_compensated_filtered"
+    frame = "vehicle_front_left_upper_velodyne_hdl32e_sensor_optical_frame"
+    path = tmp_path / ("a_rather_long_recording_name_from_the_test_drive_" + "x" * 40 + ".mcap")
+    with LogWriter(path) as w:
+        for k in range(3):
+            c = cloud(T0 + k * 100_000_000)
+            w.write_points(topic, PointCloud(c.stamp_ns, frame, c.points, c.times_s, c.fields))
+    for columns in (None, "80", "40"):
+        result = mcl3d("info", path, columns=columns)
+        assert result.returncode == 0, result.stderr
+        out = result.stdout
+        row = next(line for line in out.splitlines() if f" {topic} " in line)
+        assert "sensor_msgs/PointCloud2" in row and frame in row and " 3 " in row
+        assert f"Point cloud {topic} " in out and str(path) in out
+
+
+def test_json_of_bad_input_is_one_red_line(tmp_path):
+    bad = tmp_path / "notes.mcap"
+    bad.write_text("these are my notes, not a log\n")
+    result = mcl3d("info", bad, "--json")
+    assert_one_line_error(result, "notes.mcap", "not an MCAP file")
+    assert result.stdout == ""
 
 
 def test_truncated_mcap(small_log, tmp_path):

@@ -9,6 +9,7 @@ from typer.testing import CliRunner
 localize_world = pytest.importorskip("support.localize_world")
 
 TIGHT = "0.05 0.05 0.02 0.573 0.573 1.146"  # m, deg
+EMPTY_STAMP = localize_world.START_NS + 2 * 100_000_000  # bare.mcap's empty scan
 
 
 @pytest.fixture(scope="module")
@@ -113,7 +114,9 @@ def test_no_motion_source_and_empty_scan(data, tmp_path):
     assert r.exit_code == 0, r.output
     summary = json.loads((out / "summary.json").read_text())
     assert summary["motion_source"] == "constant_velocity"
-    assert summary["skipped_scans"] == 1 and summary["scans"] == 5
+    assert summary["skipped_scans"] == 0 and summary["scans"] == 5  # the empty scan: a fault
+    assert summary["faults"] == {"scan_empty": {"count": 1, "first_stamps_ns": [EMPTY_STAMP]}}
+    assert "1 scan dropped with no valid point" in r.output
     assert any("constant-velocity" in w for w in summary["warnings"])
     assert "ate_all" not in summary  # no ground truth in this log
 
@@ -122,7 +125,7 @@ def test_all_scans_empty_is_an_error(data, tmp_path):
     r = invoke("localize", data / "empty.mcap", "--map", data / "room.tsdf", "-o",
                tmp_path / "o", "--init", "gt", "--particles", 1000, "--backend", "cpu")
     assert r.exit_code == 1
-    assert "no scan could be localized" in said(r)
+    assert "no usable scans: 3 scans dropped with no valid point" in said(r)
 
 
 def test_map_and_log_far_apart(data, tmp_path):

@@ -201,3 +201,18 @@ def test_positions_and_path_length():
     assert traj.path_length_m() == pytest.approx(17.0)
     np.testing.assert_array_equal(traj.positions()[2], [3, 4, 12])
     assert len(traj) == 4
+
+
+def test_tum_stamps_are_exact_integer_ns(tmp_path):
+    """Stamps parse from their decimal text into ns exactly, and ns stamps are written back
+    exactly (a float second at 1.3e9 s is only good to ~0.2 us)."""
+    path = tmp_path / "t.tum"
+    path.write_text("1317000015.2 0 0 0 0 0 0 1\n1317000015.300000000 1 0 0 0 0 0 1\n")
+    traj = read_tum(path)
+    assert traj.stamps_ns.tolist() == [1_317_000_015_200_000_000, 1_317_000_015_300_000_000]
+    assert traj.range_ns() == (1_317_000_015_200_000_000, 1_317_000_015_300_000_000)
+    assert traj.stamps_s[-1] == 1317000015.3
+    write_tum(tmp_path / "out.tum", Trajectory.from_ns(traj.stamps_ns, traj.poses))
+    rows = (tmp_path / "out.tum").read_text().splitlines()[1:]
+    assert [r.split()[0] for r in rows] == ["1317000015.200000000", "1317000015.300000000"]
+    assert read_tum(tmp_path / "out.tum").stamps_ns.tolist() == traj.stamps_ns.tolist()

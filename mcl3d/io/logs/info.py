@@ -4,11 +4,15 @@ Counts, start/end and duration come from the log's summary (MCAP statistics, bag
 Frame ids come from the first few messages of each topic; cloud layouts and valid-point
 counts from decoding at most `max_scans` scans per cloud topic; topic rates from each
 topic's first and last message times (MCAP; bags use the log's end time).
+
+`LogInfo.as_dict()` gives the same facts for scripts (`mcl3d info --json`), under the keys
+documented in docs/json-output.md (schema `mcl3d.info/1`).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +24,15 @@ from mcl3d.io.logs.reader import KINDS, LogReader
 
 MAX_SCANS = 3
 FRAME_SAMPLES = 3
+SCHEMA = "mcl3d.info/1"  # bump the number when a key changes meaning or goes away
+
+
+def iso_utc(stamp_ns: int | None) -> str | None:
+    """A stamp as ISO 8601 UTC with all nine digits of its nanoseconds."""
+    if stamp_ns is None:
+        return None
+    when = datetime.fromtimestamp(stamp_ns // 1_000_000_000, tz=timezone.utc)
+    return f"{when:%Y-%m-%dT%H:%M:%S}.{stamp_ns % 1_000_000_000:09d}Z"
 
 
 @dataclass
@@ -38,6 +51,14 @@ class CloudInfo:
     def organized(self) -> bool:
         return self.height > 1
 
+    def as_dict(self) -> dict:
+        return {"organized": self.organized, "height": self.height, "width": self.width,
+                "fields": [{"name": n, "datatype": t, "count": c} for n, t, c in self.fields],
+                "time_field": self.time_field, "time_span_s": self.time_span_s,
+                "scans_decoded": self.scans_decoded,
+                "valid_points": {"min": self.valid_min, "mean": self.valid_mean,
+                                 "max": self.valid_max}}
+
 
 @dataclass
 class TopicSummary:
@@ -47,6 +68,23 @@ class TopicSummary:
     rate_hz: float | None
     frame_ids: list[str] = field(default_factory=list)
     cloud: CloudInfo | None = None
+
+    def as_dict(self) -> dict:
+        return {"name": self.topic, "type": self.msgtype, "count": self.count,
+                "rate_hz": self.rate_hz, "frame_ids": list(self.frame_ids),
+                "cloud": self.cloud.as_dict() if self.cloud else None}
+
+
+@dataclass
+class TopicChoice:
+    """The topic mcl3d would use for one kind, or the problem that stops it choosing."""
+
+    topic: str | None
+    problem: str | None = None  # e.g. several candidates: which ones
+    setting: str | None = None  # the request setting that resolves the problem
+
+    def as_dict(self) -> dict:
+        return {"topic": self.topic, "problem": self.problem, "setting": self.setting}
 
 
 @dataclass
@@ -59,8 +97,7 @@ class LogInfo:
     start_ns: int | None
     end_ns: int | None
     topics: list[TopicSummary]
-    selection: dict[str, str]  # kind -> chosen topic, "-" or why none
-    selection_settings: dict[str, str]  # kind -> the setting that resolves its problem
+    selection: dict[str, TopicChoice]  # kind (points, imu, odom, gt) -> its topic
 
     @property
     def duration_s(self) -> float | None:
@@ -71,6 +108,18 @@ class LogInfo:
     @property
     def message_count(self) -> int:
         return sum(t.count or 0 for t in self.topics)
+
+    def as_dict(self) -> dict:
+        """The facts of the tables as plain JSON types (docs/json-output.md)."""
+        return {"schema": SCHEMA, "path": str(self.path), "format": self.format,
+                "profile": self.profile, "library": self.library,
+                "size_bytes": self.size_bytes,
+                "start_ns": self.start_ns, "start_utc": iso_utc(self.start_ns),
+                "end_ns": self.end_ns, "end_utc": iso_utc(self.end_ns),
+                "duration_ns": None if self.duration_s is None else self.end_ns - self.start_ns,
+                "duration_s": self.duration_s, "message_count": self.message_count,
+                "topics": [t.as_dict() for t in self.topics],
+                "selection": {kind: c.as_dict() for kind, c in self.selection.items()}}
 
 
 def _size(path: Path) -> int:
@@ -156,16 +205,11 @@ def log_info(path: Path, *, max_scans: int = MAX_SCANS, points_topic: str | None
             if first is not None and last is not None and last > first and (tinfo.count or 0) > 1:
                 summary.rate_hz = (tinfo.count - 1) * 1e9 / (last - first)
             topics.append(summary)
-        selection, settings = {}, {}
+        selection = {}
         for kind in KINDS:
-            if kind in reader.problems:
-                problem = reader.problems[kind]
-                selection[kind] = str(problem).removeprefix(f"{path}: ")
-                if problem.setting is not None:
-                    settings[kind] = problem.setting
-            else:
-                selection[kind] = reader.topics.get(kind) or "-"
+            problem = reader.problems.get(kind)
+            selection[kind] = TopicChoice(reader.topics.get(kind)) if problem is None else (
+                TopicChoice(None, str(problem).removeprefix(f"{path}: "), problem.setting))
         return LogInfo(path=path, format=src.format, profile=src.profile, library=src.library,
                        size_bytes=_size(path), start_ns=src.start_ns, end_ns=src.end_ns,
-                       topics=topics, selection=selection,
-                       selection_settings=settings)
+                       topics=topics, selection=selection)

@@ -4,6 +4,8 @@ Reads MCAP (ROS 2 CDR or ROS 1 encoding), ROS 1 .bag files and ROS 2 bag folders
 stays flat because messages are decoded one at a time. Topics are chosen per CONVENTIONS §3:
 by message type when exactly one topic has it, ground truth by name (ground_truth,
 groundtruth, gt); otherwise a `TopicError` lists the candidates and the option to pass.
+Messages with faults (a repeated or backwards stamp, NaN/inf, an empty scan) are dropped and
+counted in `faults` (see `faults.py`).
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import numpy as np
 from mcl3d.core.errors import TopicError
 from mcl3d.core.geometry import se3_inverse
 from mcl3d.io.logs import ros_types as rt
+from mcl3d.io.logs.faults import FaultFilter, LogFaults
 from mcl3d.io.logs.messages import PointCloud, Transform
 from mcl3d.io.logs.sources import TopicInfo, open_source
 
@@ -57,6 +60,7 @@ class LogReader:
                  gt_topic: str | None = None):
         self.path = Path(path)
         self._source = open_source(self.path)
+        self.faults = LogFaults()  # messages dropped for faults, over every pass
         try:
             self.problems: dict[str, TopicError] = {}
             chosen = {"points": points_topic, "imu": imu_topic, "odom": odom_topic,
@@ -125,7 +129,8 @@ class LogReader:
     # ---- reading ----
 
     def messages(self, kinds=KINDS) -> Iterator[tuple[str, object]]:
-        """(kind, message) in log-time order for the kinds present; ambiguous kinds raise."""
+        """(kind, message) in log-time order for the kinds present, messages with faults
+        left out (and counted in `faults`); ambiguous kinds raise."""
         for kind in kinds:
             if kind in self.problems:
                 raise self.problems[kind]
@@ -137,10 +142,13 @@ class LogReader:
         if not by_topic:
             return
         counters = dict.fromkeys(by_topic, 0)
+        sound = FaultFilter(self.faults)
         for topic, _log_ns, msg in self._source.messages(list(by_topic)):
             counters[topic] += 1
             for kind in by_topic[topic]:
-                yield kind, self._convert(kind, topic, msg, counters[topic])
+                converted = self._convert(kind, topic, msg, counters[topic])
+                if sound.keep(kind, converted):
+                    yield kind, converted
 
     def _convert(self, kind: str, topic: str, msg, index: int):
         msgtype = self.all_topics[topic].msgtype
@@ -153,7 +161,7 @@ class LogReader:
         return rt.to_pose(msg, msgtype)
 
     def scans(self) -> Iterator[PointCloud]:
-        """Every scan on the point-cloud topic, decoded, in log-time order."""
+        """Every sound scan on the point-cloud topic, decoded, in log-time order."""
         self.require("points")
         for _kind, cloud in self.messages(("points",)):
             yield cloud

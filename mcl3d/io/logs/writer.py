@@ -2,7 +2,8 @@
 
 Schemas are `ros2msg` text with dependent types appended after '=====' / 'MSG: pkg/Type'
 separators, as rosbag2 writes them. The output is byte-deterministic: no wall-clock time is
-stored (log_time = publish_time = header stamp), the library string is fixed, and chunking
+stored (log_time = publish_time = header stamp, unless a receive time `log_ns` is given, as
+a recorder stamps it), the library string is fixed, and chunking
 and compression settings are constant. The file appears only when the writer closes cleanly.
 """
 
@@ -52,7 +53,8 @@ class LogWriter:
             self._stack.__exit__(exc_type, exc, tb)
             self._stack = None
 
-    def _write(self, topic: str, msgtype: str, msg, stamp: int) -> None:
+    def _write(self, topic: str, msgtype: str, msg, stamp: int, log_ns: int | None = None
+               ) -> None:
         if self._mcap is None or self._stack is None:
             raise RuntimeError("use LogWriter as a context manager: `with LogWriter(path) as w:`")
         store = rt.ros2_typestore()
@@ -72,25 +74,26 @@ class LogWriter:
         if stamp < 0:
             raise InputError(f"{self.path}: negative stamp {stamp} ns on {topic}")
         data = store.serialize_cdr(msg, msgtype)
-        self._mcap.add_message(channel_id=channel, log_time=int(stamp), publish_time=int(stamp),
+        log_time = int(stamp if log_ns is None else log_ns)
+        self._mcap.add_message(channel_id=channel, log_time=log_time, publish_time=log_time,
                                sequence=self._sequence[topic], data=bytes(data))
         self._sequence[topic] += 1
 
-    def write_points(self, topic: str, cloud: PointCloud) -> None:
+    def write_points(self, topic: str, cloud: PointCloud, log_ns: int | None = None) -> None:
         """Write a cloud as PointCloud2: x y z float32, its fields, per-point time as `t` (s)."""
         msg = rt.from_pointcloud(rt.ros2_typestore(), cloud, f"{self.path} topic {topic}")
-        self._write(topic, rt.POINTCLOUD2, msg, cloud.stamp_ns)
+        self._write(topic, rt.POINTCLOUD2, msg, cloud.stamp_ns, log_ns)
 
-    def write_imu(self, topic: str, imu: Imu) -> None:
-        self._write(topic, rt.IMU, rt.from_imu(rt.ros2_typestore(), imu), imu.stamp_ns)
+    def write_imu(self, topic: str, imu: Imu, log_ns: int | None = None) -> None:
+        self._write(topic, rt.IMU, rt.from_imu(rt.ros2_typestore(), imu), imu.stamp_ns, log_ns)
 
-    def write_odometry(self, topic: str, odom: Odometry) -> None:
+    def write_odometry(self, topic: str, odom: Odometry, log_ns: int | None = None) -> None:
         self._write(topic, rt.ODOMETRY, rt.from_odometry(rt.ros2_typestore(), odom),
-                    odom.stamp_ns)
+                    odom.stamp_ns, log_ns)
 
-    def write_pose(self, topic: str, pose: PoseStamped) -> None:
+    def write_pose(self, topic: str, pose: PoseStamped, log_ns: int | None = None) -> None:
         self._write(topic, rt.POSE_STAMPED, rt.from_pose(rt.ros2_typestore(), pose),
-                    pose.stamp_ns)
+                    pose.stamp_ns, log_ns)
 
     def write_tf(self, topic: str, transforms: list[Transform]) -> None:
         """Write one tf2_msgs/TFMessage ('/tf_static' for extrinsics); stamped by its first."""
