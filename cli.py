@@ -205,8 +205,9 @@ JsonOption = Annotated[bool, typer.Option("--json", help="Print the facts as one
 
 @app.command()
 def info(
-    log: Annotated[Path, typer.Argument(help="MCAP file, ROS 1 .bag file or ROS 2 bag folder.",
-                                        metavar="LOG", show_default=False)],
+    log: Annotated[Path, typer.Argument(help="MCAP file, ROS 1 .bag file, ROS 2 bag folder or "
+                                        "KITTI sequence folder.", metavar="LOG",
+                                        show_default=False)],
     points_topic: PointsTopicOption = None,
     imu_topic: ImuTopicOption = None,
     odom_topic: OdomTopicOption = None,
@@ -270,8 +271,8 @@ def simulate(
 @app.command("build-map")
 def build_map(
     source: Annotated[Path, typer.Argument(
-        help="A log (.mcap/.bag) with ground truth or --trajectory, a point-cloud map "
-             "(.pcd/.ply/.bin), a mesh (.ply/.obj/.stl/.off/.glb) or a HATSDF map (.h5).")],
+        help="A log (MCAP, ROS bag, KITTI folder) with ground truth or --trajectory, a point-cloud "
+             "map (.pcd/.ply/.bin), a mesh (.ply/.obj/.stl/.off/.glb) or a HATSDF map (.h5).")],
     output: Annotated[Path, typer.Option("-o", "--output", help="The map file to write "
                                          "(.tsdf).")],
     trajectory: Annotated[Path | None, typer.Option(
@@ -386,7 +387,8 @@ def _localize_overrides(init: str, init_std: str | None, particles: int | None,
 
 @app.command()
 def localize(
-    log: Annotated[Path, typer.Argument(help="Log with LiDAR scans (MCAP, ROS 1 bag, ROS 2 bag).")],
+    log: Annotated[Path, typer.Argument(help="Log with LiDAR scans (MCAP, ROS 1 bag, ROS 2 bag, "
+                                        "KITTI folder).")],
     map_file: Annotated[Path, typer.Option("--map", help="TSDF map (.tsdf) from build-map.")],
     out: Annotated[Path, typer.Option("-o", "--out", help="Output folder.")],
     init: Annotated[str, typer.Option(
@@ -474,8 +476,9 @@ def demo(
 
 @app.command()
 def odometry(
-    log: Annotated[Path, typer.Argument(help="Log with LiDAR scans (MCAP, ROS 1 bag, ROS 2 bag); "
-                                        "IMU and ground truth are used when present.")],
+    log: Annotated[Path, typer.Argument(help="Log with LiDAR scans (MCAP, ROS 1 bag, ROS 2 bag, "
+                                        "KITTI folder). IMU and ground truth are used when "
+                                        "present.")],
     out: Annotated[Path, typer.Option("-o", "--out", help="Output folder: odometry.tum, "
                                       "odometry_kitti.txt, relative_motion.npz, "
                                       "odometry_summary.json, odometry_config.yaml.")],
@@ -534,8 +537,9 @@ def _print_notes(notes: list[str], warnings: list[str], num_warnings: int, fault
 
 @app.command()
 def slam(
-    log: Annotated[Path, typer.Argument(help="Log with LiDAR scans (MCAP, ROS 1 bag, ROS 2 bag); "
-                                        "IMU and ground truth are used when present.")],
+    log: Annotated[Path, typer.Argument(help="Log with LiDAR scans (MCAP, ROS 1 bag, ROS 2 bag, "
+                                        "KITTI folder). IMU and ground truth are used when "
+                                        "present.")],
     out: Annotated[Path, typer.Option("-o", "--out", help="Output folder: slam.tum, "
                                       "slam_kitti.txt, slam_online.tum, odometry.tum, map.ply, "
                                       "frames.csv, slam_summary.json, slam_config.yaml.")],

@@ -5,11 +5,13 @@ from __future__ import annotations
 
 import contextlib
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 
 import numpy as np
 
 from mcl3d.core import geometry
 from mcl3d.evaluation.metrics import evaluate
+from mcl3d.evaluation.run_plots import LOCALIZE_PICTURE
 from mcl3d.io.logs.faults import LogFaults
 from mcl3d.io.trajectory import Trajectory
 from mcl3d.localization.state import STAGES, FilterState, LocalizationResult
@@ -127,4 +129,5 @@ def summary_rows(s: LocalizeSummary, out_dir) -> list[tuple[str, str]]:
     rows.append(("ms per update (warm)", f"{ms['total']:.1f} = " + " + ".join(
         f"{k} {v:.1f}" for k, v in ms.items() if k != "total")))
     rows.append(("outputs", str(out_dir)))
+    rows.append(("picture", str(Path(out_dir) / LOCALIZE_PICTURE)))
     return rows

@@ -1,5 +1,5 @@
 """The files a `localize` run writes: trajectory (TUM + KITTI), the per-scan CSV, the
-effective config and summary.json, each atomically."""
+effective config, summary.json and a picture of the run, each atomically."""
 
 from __future__ import annotations
 
@@ -12,12 +12,13 @@ import numpy as np
 from mcl3d.core import geometry
 from mcl3d.core.config import Section, save
 from mcl3d.core.outputs import atomic_open, check_writable
+from mcl3d.evaluation.run_plots import LOCALIZE_PICTURE, localize_figure, write_png
 from mcl3d.io.trajectory import Trajectory, write_kitti, write_tum
 from mcl3d.localization.localization_summary import LocalizeSummary
 from mcl3d.localization.state import STAGES, LocalizationResult
 
 OUTPUT_FILES = {"tum": "trajectory.tum", "kitti": "trajectory.kitti", "csv": "scans.csv",
-                "config": "config.yaml", "summary": "summary.json"}
+                "config": "config.yaml", "summary": "summary.json", "picture": LOCALIZE_PICTURE}
 CSV_HEADER = ("stamp_s,x,y,z,qx,qy,qz,qw,var_rx,var_ry,var_rz,var_x,var_y,var_z,ess,"
               "n_particles,state,hypotheses,match_ratio,mean_log_likelihood,n_points,resampled,"
               "reseeded,motion," + ",".join(f"ms_{s}" for s in STAGES) + ",ms_total")
@@ -50,8 +51,11 @@ def _csv_row(r: LocalizationResult, motion: str) -> str:
 
 def write_outputs(paths: dict[str, Path], results: list[LocalizationResult],
                   motion_kinds: list[str], summary: LocalizeSummary, cfg: Section,
-                  stamps_ns: list[int] | None = None) -> None:
-    """Every output; `stamps_ns` are the results' exact stamps, for the trajectory files."""
+                  stamps_ns: list[int] | None = None, map_points: np.ndarray | None = None,
+                  gt: Trajectory | None = None, map_cell_m: float = 0.0) -> None:
+    """Every output; `stamps_ns` are the results' exact stamps, for the trajectory files;
+    `map_points` (map frame, `map_cell_m` apart) and the ground truth `gt` go into the
+    picture."""
     poses = np.stack([r.T_map_lidar for r in results])
     traj = (Trajectory(np.array([r.stamp_s for r in results]), poses) if stamps_ns is None
             else Trajectory.from_ns(stamps_ns, poses))
@@ -64,6 +68,8 @@ def write_outputs(paths: dict[str, Path], results: list[LocalizationResult],
     save(cfg, paths["config"])
     with atomic_open(paths["summary"]) as f:
         json.dump(summary.to_json(), f, indent=2, default=_json_default)
+    points = np.zeros((0, 3)) if map_points is None else map_points
+    write_png(paths["picture"], localize_figure(results, points, gt, map_cell_m))
 
 
 def _json_default(value):

@@ -3,8 +3,8 @@
 `run(request, on_progress=None) -> LocalizeResult` reads as its steps: check outputs -> load
 the map -> open the log and choose the motion source -> initialize the particles -> filter
 every scan (with timing and progress) -> write the trajectory (TUM + KITTI), the per-scan
-CSV, the effective config and optionally a result MCAP -> summary (convergence, ATE against
-ground truth, ms per stage).
+CSV, the effective config, a picture of the run (localize.png) and optionally a result MCAP
+-> summary (convergence, ATE against ground truth, ms per stage).
 """
 
 from __future__ import annotations
@@ -24,8 +24,10 @@ from mcl3d.core.outputs import output_folder
 from mcl3d.core.progress import Progress, ProgressCallback, report
 from mcl3d.io.logs.faults import LogFaults
 from mcl3d.io.logs.messages import PointCloud, PoseStamped
+from mcl3d.io.logs.plausibility import check_scans
 from mcl3d.io.logs.reader import LogReader
 from mcl3d.io.logs.writer import LogWriter
+from mcl3d.io.trajectory import Trajectory
 from mcl3d.localization.initialization import auto_band
 from mcl3d.localization.localization_config import LocalizerConfig, check_config
 from mcl3d.localization.localization_summary import (
@@ -45,6 +47,7 @@ from mcl3d.localization.motion_source import MotionSource, MotionSourceConfig
 from mcl3d.localization.output_files import check_outputs, write_outputs
 from mcl3d.localization.sensor_model import MIN_SCAN_POINTS
 from mcl3d.localization.state import EmptyScan, FilterState, LocalizationResult
+from mcl3d.maps.export import surface_points
 from mcl3d.maps.map_file import load_map
 
 NO_OVERLAP_SCANS = 10  # global init: give up when no scan matched the map by then
@@ -115,6 +118,7 @@ def _run(req: LocalizeRequest, on_progress: ProgressCallback | None) -> Localize
     tsdf = load_map(Path(req.map), f16=False)
     try:
         out = _run_filter(req, tsdf, on_progress)
+        map_points = surface_points(tsdf.geometry, tsdf.blocks())  # for the picture
     finally:
         tsdf.destroy()  # the map's device memory; the particles are small
     if not out.results:
@@ -124,7 +128,9 @@ def _run(req: LocalizeRequest, on_progress: ProgressCallback | None) -> Localize
         raise InputError(f"{req.log}: no scan could be localized ({out.skipped_scans} scans "
                          f"had fewer than {MIN_SCAN_POINTS} points in the range gate)")
     out.summary = _summary(out, req.config, info)
-    write_outputs(paths, out.results, out.motion_kinds, out.summary, req.config, out.stamps_ns)
+    write_outputs(paths, out.results, out.motion_kinds, out.summary, req.config, out.stamps_ns,
+                  map_points, None if out.gt is None else Trajectory.from_ns(*out.gt),
+                  tsdf.voxel_size_m)
     if out.interrupted:
         raise RunInterrupted(f"interrupted after {len(out.results)} scans; the trajectory so far "
                              f"is in {paths['tum']}")
@@ -138,6 +144,7 @@ def _run_filter(req: LocalizeRequest, tsdf, on_progress) -> LocalizeResult:
                    odom_topic=topics.odom, gt_topic=topics.gt) as reader:
         out.faults = reader.faults
         reader.require("points")
+        check_scans(reader, req.log, needs_3d=False)
         n_scans = reader.count("points")
         out.gt = reader.ground_truth() if reader.topics.gt else None
         firsts = first_messages(reader, ("points", "imu", "odom"), cfg.localizer.init.imu_samples)

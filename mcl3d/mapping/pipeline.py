@@ -21,6 +21,7 @@ from mcl3d.core.outputs import check_writable
 from mcl3d.core.progress import Progress, ProgressCallback, report
 from mcl3d.io.logs.cloud_files import read_cloud_file
 from mcl3d.io.logs.faults import LogFaults, format_stamp
+from mcl3d.io.logs.plausibility import check_scans
 from mcl3d.io.logs.reader import LogReader
 from mcl3d.io.trajectory import Trajectory, read_trajectory
 from mcl3d.maps import build, export, map_file
@@ -216,6 +217,7 @@ def _build_from_log(req: BuildMapRequest, on_progress: ProgressCallback | None) 
     grown and the fusion pass run again."""
     cfg = req.config
     with LogReader(req.source, points_topic=req.points_topic, gt_topic=req.gt_topic) as reader:
+        check_scans(reader, req.source, needs_3d=False)
         traj, traj_source = _poses(req, reader)
         scans = _scan_bounds(req, reader, traj)
         lo = np.minimum(scans.lo_m, traj.positions().min(axis=0))
@@ -235,7 +237,7 @@ def _build_from_log(req: BuildMapRequest, on_progress: ProgressCallback | None) 
     source = {"kind": "log", "path": str(req.source), "points_topic": reader.topics.points,
               "poses": traj_source, "scans": fuser.n_scans,
               "empty_scans_skipped": scans.n_empty, "deskewed": scans.deskewed}
-    if reader.faults.tallies:
+    if reader.faults.found():
         source["faults"] = reader.faults.as_dict()
     return _Built(tsdf, source, fuser.n_scans, fuser.n_points, reader.faults)
 

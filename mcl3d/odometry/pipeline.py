@@ -20,6 +20,7 @@ from mcl3d.core import config as config_io
 from mcl3d.core.errors import Mcl3dError, RunInterrupted
 from mcl3d.core.outputs import atomic_open, check_writable, output_folder
 from mcl3d.core.progress import Progress, ProgressCallback, report
+from mcl3d.io.logs.plausibility import check_scans
 from mcl3d.io.logs.reader import LogReader
 from mcl3d.io.trajectory import Trajectory, write_kitti, write_tum
 from mcl3d.odometry.lidar_odometry import LidarOdometry, OdometryConfig, OdometryFrame
@@ -91,6 +92,7 @@ def _run(req: OdometryRequest, on_progress: ProgressCallback | None) -> Odometry
     with LogReader(req.log, points_topic=req.points_topic, imu_topic=req.imu_topic,
                    gt_topic=req.gt_topic) as reader:
         reader.require("points")
+        check_scans(reader, req.log, needs_3d=True)
         odo: LidarOdometry | None = None
         total = reader.count("points") or None
         if req.max_scans is not None and total is not None:

@@ -5,8 +5,9 @@ Steps: check the outputs, open the log, run `MonteCarloSlam.step` on every scan 
 samples since the previous one, then write the representative particle's trajectory (TUM,
 KITTI; every scan placed by its keyframes, so loop corrections show), the representative of
 each scan as it was chosen online, the odometry front-end's trajectory, the map (union of
-keyframe clouds, PLY), the per-frame log (CSV), the effective config and a summary (ATE of
-SLAM and of odometry alone against the log's ground truth, messages dropped for faults).
+keyframe clouds, PLY), the per-frame log (CSV), the effective config, a summary (ATE of
+SLAM and of odometry alone against the log's ground truth, messages dropped for faults) and a
+picture of the run (slam.png).
 Optionally build a TSDF map from the result, so `slam` -> `localize` is one pipeline.
 Ctrl-C keeps everything done so far. The contract: `run(request, on_progress=None)`.
 """
@@ -24,6 +25,8 @@ from mcl3d.core import config as config_io
 from mcl3d.core.errors import Mcl3dError, RunInterrupted
 from mcl3d.core.outputs import atomic_open, check_writable, output_folder
 from mcl3d.core.progress import Progress, ProgressCallback, report
+from mcl3d.evaluation.run_plots import SLAM_PICTURE, slam_figure, write_png
+from mcl3d.io.logs.plausibility import check_scans
 from mcl3d.io.logs.reader import LogReader
 from mcl3d.io.trajectory import Trajectory, write_kitti, write_tum
 from mcl3d.mapping.pipeline import BuildMapRequest
@@ -48,13 +51,15 @@ class SlamOutputs:
     frames: Path
     summary: Path
     config: Path
+    picture: Path
 
     @classmethod
     def in_folder(cls, folder: Path) -> SlamOutputs:
         return cls(tum=folder / "slam.tum", kitti=folder / "slam_kitti.txt",
                    online=folder / "slam_online.tum", odometry=folder / "odometry.tum",
                    map=folder / "map.ply", frames=folder / "frames.csv",
-                   summary=folder / "slam_summary.json", config=folder / "slam_config.yaml")
+                   summary=folder / "slam_summary.json", config=folder / "slam_config.yaml",
+                   picture=folder / SLAM_PICTURE)
 
     def all(self) -> list[Path]:
         return list(astuple(self))
@@ -111,6 +116,7 @@ def _run(req: SlamRequest, outputs: SlamOutputs, on_progress: ProgressCallback |
     with LogReader(req.log, points_topic=req.points_topic, imu_topic=req.imu_topic,
                    gt_topic=req.gt_topic) as reader:
         reader.require("points")
+        check_scans(reader, req.log, needs_3d=True)
         total = reader.count("points") or None
         if req.max_scans is not None and total is not None:
             total = min(total, req.max_scans)
@@ -165,13 +171,16 @@ def _write(outputs: SlamOutputs, slam: MonteCarloSlam, feed: LidarImuFeed,
     write_kitti(outputs.kitti, trajectories["slam"])
     write_tum(outputs.online, trajectories["online"])
     write_tum(outputs.odometry, trajectories["odometry"])
-    write_ply(outputs.map, voxel_downsample(slam.map_points(), slam.cfg.front_end.scan_voxel_m))
+    map_points = voxel_downsample(slam.map_points(), slam.cfg.front_end.scan_voxel_m)
+    write_ply(outputs.map, map_points)
     _write_frames(outputs.frames, frames)
     config_io.save(slam.cfg, outputs.config)
-    summary = summarize(slam, trajectories, feed.ground_truth(), feed.notes, interrupted,
-                        feed.reader.faults)
+    gt = feed.ground_truth()
+    summary = summarize(slam, trajectories, gt, feed.notes, interrupted, feed.reader.faults)
     with atomic_open(outputs.summary, "w") as f:
         json.dump(summary.as_dict(), f, indent=2)
+    write_png(outputs.picture, slam_figure(frames, trajectories, map_points, gt,
+                                           slam.cfg.particles, slam.cfg.front_end.scan_voxel_m))
     return summary
 
 

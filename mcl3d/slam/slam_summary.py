@@ -10,6 +10,7 @@ import numpy as np
 
 from mcl3d.core.errors import Mcl3dError
 from mcl3d.evaluation.metrics import evaluate
+from mcl3d.evaluation.run_plots import SLAM_PICTURE
 from mcl3d.io.logs.faults import LogFaults
 from mcl3d.io.trajectory import Trajectory
 from mcl3d.mapping.pipeline import format_bytes
@@ -151,4 +152,5 @@ def summary_rows(summary: SlamSummary, backend: str, output_dir: Path,
     if tsdf is not None:
         rows.append(("TSDF map", str(tsdf)))
     rows.append(("outputs", str(output_dir)))
+    rows.append(("picture", str(Path(output_dir) / SLAM_PICTURE)))
     return rows

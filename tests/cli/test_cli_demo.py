@@ -4,6 +4,7 @@ globally) and never overwrites a run. Smaller than the default demo: a 6 s log, 
 import json
 from pathlib import Path
 
+from support.pictures import assert_picture
 from typer.testing import CliRunner
 
 from mcl3d.cli import app
@@ -39,6 +40,7 @@ def test_demo_runs_every_step_into_a_fresh_folder(tmp_path: Path):
     after = summary["ate_after_convergence"]
     assert after["translation_max_m"] < 0.2 and after["rotation_max_deg"] < 3.0
     assert "from then on within" in result.output
+    assert_picture(latest / "localize" / "localize.png")
 
     runs = sorted((tmp_path / "demo").iterdir())
     bad = CliRunner().invoke(app, ["demo", "-o", str(tmp_path / "demo"), "--backend", "cpu",

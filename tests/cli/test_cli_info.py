@@ -234,15 +234,23 @@ def test_json_of_bad_input_is_one_red_line(tmp_path):
 
 
 def test_truncated_mcap(small_log, tmp_path):
+    """A cut log is read up to the cut (its format says so); one cut before its first message
+    stops with one line."""
     data = small_log.read_bytes()
-    for cut in (len(data) // 2, len(data) - 3, 40):
+    for cut in (len(data) // 2, len(data) - 3):
         bad = tmp_path / "cut.mcap"
         bad.write_bytes(data[:cut])
-        before = sorted(tmp_path.iterdir())
-        assert_one_line_error(mcl3d("info", bad), "cut.mcap", "truncated")
-        assert sorted(tmp_path.iterdir()) == before
-        with pytest.raises(LogFormatError, match="truncated"):
-            LogReader(bad)
+        result = mcl3d("info", bad, "--json")
+        assert result.returncode == 0, result.stderr
+        assert "truncated or damaged at byte" in json.loads(result.stdout)["format"]
+        with LogReader(bad) as reader:
+            assert reader.faults.truncation is not None
+    bad.write_bytes(data[:40])
+    before = sorted(tmp_path.iterdir())
+    assert_one_line_error(mcl3d("info", bad), "cut.mcap", "truncated")
+    assert sorted(tmp_path.iterdir()) == before
+    with pytest.raises(LogFormatError, match="truncated"):
+        LogReader(bad)
 
 
 def test_corrupt_mcap_body(small_log, tmp_path):

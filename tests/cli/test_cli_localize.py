@@ -4,6 +4,7 @@ import json
 
 import numpy as np
 import pytest
+from support.pictures import assert_picture
 from typer.testing import CliRunner
 
 localize_world = pytest.importorskip("support.localize_world")
@@ -84,6 +85,8 @@ def test_tracking_end_to_end(data, tmp_path):
     assert summary["ate_all"]["translation_rmse_m"] < 0.08
     assert summary["final_state"] == "converged"
     assert "localizer" in (out / "config.yaml").read_text()
+    assert_picture(out / "localize.png")
+    assert "picture" in r.output
     from mcl3d.io.logs.reader import LogReader
 
     with LogReader(tmp_path / "result.mcap", points_topic="/localization/scan") as reader:

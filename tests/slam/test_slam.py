@@ -3,6 +3,7 @@
 
 import numpy as np
 import pytest
+from support.pictures import assert_picture
 from typer.testing import CliRunner
 
 from mcl3d.cli import app
@@ -123,6 +124,8 @@ def test_slam_command_writes_every_output(forest_log, tmp_path, ti_runtime):
     assert (out / "map.ply").stat().st_size == head.index(b"end_header\n") + 11 + 12 * count
     header, _, data = read_blocks(tsdf)
     assert header["format"] and len(data.sdf) > 0
+    assert_picture(out / "slam.png")
+    assert "picture" in result.output
 
 
 def test_slam_without_imu_and_interrupted_keeps_results(forest_log, tmp_path, ti_runtime,

@@ -4,7 +4,8 @@ back, NaN or inf in an IMU, odometry or ground-truth message, a scan without a v
 Such a message is dropped where the log is read (`FaultFilter`, one per pass over the
 messages), counted by fault kind with its first stamps in `LogFaults`, and named once in the
 run's summary (CONVENTIONS §6): one fault never ends a run. Stamps are compared as integer
-nanoseconds, per message kind.
+nanoseconds, per message kind. A log damaged part way (`LogTruncation`) is read up to the
+damage and named the same way.
 """
 
 from __future__ import annotations
@@ -42,6 +43,26 @@ class FaultTally:
             self.first_stamps_ns.append(int(stamp_ns))
 
 
+@dataclass(frozen=True)
+class LogTruncation:
+    """A log damaged part way (a recorder killed mid-chunk, an incomplete copy), read up to the
+    damage: where the first damaged record starts, and the scans read before the damage."""
+
+    damaged_at_byte: int
+    total_bytes: int
+    scans_read: int
+
+    def as_dict(self) -> dict:
+        return {"damaged_at_byte": self.damaged_at_byte, "total_bytes": self.total_bytes,
+                "scans_read": self.scans_read}
+
+    def warning(self) -> str:
+        return (f"the log is truncated or damaged at {self.damaged_at_byte / 1e6:.1f} of its "
+                f"{self.total_bytes / 1e6:.1f} MB (an interrupted recording or an incomplete "
+                f"copy): read the {self.scans_read} scans up to the damage; the rest of the "
+                "recording is lost")
+
+
 @dataclass
 class LogFaults:
     """The messages a run dropped, by fault kind ("scan_repeated_stamp", "imu_not_finite",
@@ -49,6 +70,10 @@ class LogFaults:
     each kind keeps the tally of the pass that read the most."""
 
     tallies: dict[str, FaultTally] = field(default_factory=dict)
+    truncation: LogTruncation | None = None  # the log is damaged part way
+
+    def found(self) -> bool:
+        return bool(self.tallies) or self.truncation is not None
 
     def offer(self, kind: str, tally: FaultTally) -> None:
         """A pass's tally of `kind`, kept when no earlier pass found more."""
@@ -62,12 +87,15 @@ class LogFaults:
 
     def as_dict(self) -> dict[str, dict]:
         """The summary's "faults": kind -> count and first stamps (ns)."""
-        return {kind: {"count": t.count, "first_stamps_ns": list(t.first_stamps_ns)}
-                for kind, t in sorted(self.tallies.items())}
+        found = {kind: {"count": t.count, "first_stamps_ns": list(t.first_stamps_ns)}
+                 for kind, t in sorted(self.tallies.items())}
+        if self.truncation is not None:
+            found["log_truncated"] = self.truncation.as_dict()
+        return found
 
     def warnings(self) -> list[str]:
         """One line per fault kind, naming its first stamps."""
-        lines = []
+        lines = [] if self.truncation is None else [self.truncation.warning()]
         for kind, t in sorted(self.tallies.items()):
             message, fault = next((m, kind[len(m) + 1:]) for m in KIND_WORDS
                                   if kind.startswith(m + "_"))

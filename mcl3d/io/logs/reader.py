@@ -1,11 +1,12 @@
 """Streaming log reader: scans, IMU, odometry, ground truth and static transforms.
 
-Reads MCAP (ROS 2 CDR or ROS 1 encoding), ROS 1 .bag files and ROS 2 bag folders; memory
-stays flat because messages are decoded one at a time. Topics are chosen per CONVENTIONS §3:
-by message type when exactly one topic has it, ground truth by name (ground_truth,
-groundtruth, gt); otherwise a `TopicError` lists the candidates and the option to pass.
+Reads MCAP (ROS 2 CDR or ROS 1 encoding), ROS 1 .bag files, ROS 2 bag folders and KITTI
+odometry folders; memory stays flat because messages are decoded one at a time. Topics
+are chosen per CONVENTIONS §3: by message type when exactly one topic has it, ground truth
+by name (ground_truth, groundtruth, gt); otherwise a `TopicError` lists the candidates and
+the option to pass.
 Messages with faults (a repeated or backwards stamp, NaN/inf, an empty scan) are dropped and
-counted in `faults` (see `faults.py`).
+counted in `faults` (see `faults.py`), as is a log damaged part way (read up to the damage).
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ import numpy as np
 from mcl3d.core.errors import TopicError
 from mcl3d.core.geometry import se3_inverse
 from mcl3d.io.logs import ros_types as rt
-from mcl3d.io.logs.faults import FaultFilter, LogFaults
+from mcl3d.io.logs.faults import FaultFilter, LogFaults, LogTruncation
 from mcl3d.io.logs.messages import PointCloud, Transform
 from mcl3d.io.logs.sources import TopicInfo, open_source
 
@@ -67,6 +68,7 @@ class LogReader:
                       "gt": gt_topic}
             selected = {kind: self._select(kind, chosen[kind], chosen) for kind in KINDS}
             self.topics = TopicSelection(**selected)
+            self.faults.truncation = self._truncation()
         except BaseException:
             self._source.close()
             raise
@@ -113,6 +115,13 @@ class LogReader:
                 f"{self.path}: {len(candidates)} {_KIND_WORDS[kind]} topics "
                 f"({', '.join(candidates)}); choose one", setting=setting)
         return None
+
+    def _truncation(self) -> LogTruncation | None:
+        damage = getattr(self._source, "damage", None)
+        if damage is None:
+            return None
+        scans = damage.messages_read.get(self.topics.points, 0)
+        return LogTruncation(damage.damaged_at_byte, damage.total_bytes, scans)
 
     def require(self, kind: str) -> str:
         """The topic for `kind`, or a TopicError saying why there is none and what to pass."""

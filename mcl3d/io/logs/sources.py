@@ -3,8 +3,11 @@
 Two sources cover every supported format: `McapSource` (MCAP files, ROS 2 CDR or ROS 1
 encoding, types registered from the schemas stored in the file) and `RosbagsSource`
 (ROS 1 .bag files and ROS 2 bag folders, sqlite3 or MCAP, through rosbags' AnyReader).
-Both yield `rosbags` message objects, so conversion to mcl3d dataclasses is shared.
-Any failure of the underlying libraries becomes a `LogFormatError` naming the file.
+Both (and `kitti_folder.KittiFolderSource`) yield `rosbags` message objects, so conversion
+to mcl3d dataclasses is shared.
+Any failure of the underlying libraries becomes a `LogFormatError` naming the file, except
+an MCAP damaged after its first message (a recorder killed mid-chunk, an incomplete copy):
+like `mcap recover`, it is read up to the damage, and `damage` says how much was read.
 """
 
 from __future__ import annotations
@@ -14,17 +17,20 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import yaml
-from mcap.reader import NonSeekingReader, make_reader
-from mcap.records import Statistics
+from mcap.reader import make_reader
+from mcap.records import Channel, Header, Message, Schema, Statistics
+from mcap.stream_reader import StreamReader
 from mcap.summary import Summary
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
 
 from mcl3d.core.errors import LogFormatError, Mcl3dError
+from mcl3d.io.logs.mcap_recovery import partial_chunk_records
 from mcl3d.io.logs.ros_types import normalize_type, ros2_typestore
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
-SUPPORTED = "MCAP files (.mcap), ROS 1 .bag files and ROS 2 bag folders"
+SUPPORTED = ("MCAP files (.mcap), ROS 1 .bag files, ROS 2 bag folders and KITTI odometry "
+             "folders")
 
 
 @dataclass
@@ -34,6 +40,17 @@ class TopicInfo:
     count: int | None  # None when the log has no summary to tell
     decodable: bool = True  # a message definition is available
     handles: list = field(default_factory=list, repr=False)  # source-specific channel handles
+
+
+@dataclass(frozen=True)
+class StreamDamage:
+    """Where a damaged MCAP stops being readable: the start of its first damaged record (whose
+    whole records were still read), and the messages read per topic."""
+
+    damaged_at_byte: int
+    total_bytes: int
+    messages_read: dict[str, int]
+    detail: str  # what the reader met at the damage
 
 
 def _corrupt(path: Path, exc: BaseException) -> LogFormatError:
@@ -49,8 +66,13 @@ def open_source(path: Path):
         raise LogFormatError(f"{path}: no such file or folder")
     if path.is_dir():
         if not (path / "metadata.yaml").exists():
-            raise LogFormatError(f"{path}: folder without metadata.yaml is not a ROS 2 bag; "
-                                 f"mcl3d reads {SUPPORTED}")
+            from mcl3d.io.logs import kitti_folder  # it builds on this module's TopicInfo
+
+            if kitti_folder.is_kitti_folder(path):
+                return kitti_folder.KittiFolderSource(path)
+            raise LogFormatError(f"{path}: neither a ROS 2 bag folder (no metadata.yaml) nor a "
+                                 f"KITTI sequence (no velodyne/ with times.txt); mcl3d reads "
+                                 f"{SUPPORTED}")
         return RosbagsSource(path, "ROS 2 bag folder")
     if path.suffix == ".db3":
         return open_source(path.parent)
@@ -66,23 +88,27 @@ def open_source(path: Path):
                              f"magic bytes); mcl3d reads {SUPPORTED}")
     with open(path, "rb") as f:
         f.seek(max(path.stat().st_size - len(MCAP_MAGIC), 0))
-        if f.read() != MCAP_MAGIC:
-            raise LogFormatError(f"{path}: the MCAP file is truncated (it does not end with the "
-                                 "MCAP magic bytes: an interrupted recording or an incomplete "
-                                 "copy); re-copy it, or repair it with `mcap recover`")
-    return McapSource(path)
+        complete = f.read() == MCAP_MAGIC
+    return McapSource(path, complete)
 
 
 class McapSource:
-    """An MCAP file, read through its summary and chunk indexes (streamed chunk by chunk)."""
+    """An MCAP file, read through its summary and chunk indexes (streamed chunk by chunk); one
+    that does not end with the MCAP magic bytes (truncated) is streamed up to its damage."""
 
-    def __init__(self, path: Path):
+    def __init__(self, path: Path, complete: bool = True):
         self.path = path
         self._file = open(path, "rb")  # noqa: SIM115 (closed by close())
+        self.damage: StreamDamage | None = None
+        self._reader = None
+        summary = None
         try:
-            self._reader = make_reader(self._file)
-            header = self._reader.get_header()
-            summary = self._reader.get_summary()
+            if complete:
+                self._reader = make_reader(self._file)
+                header = self._reader.get_header()
+                summary = self._reader.get_summary()
+            if summary is None or not summary.channels or summary.statistics is None:
+                header, summary = self._scan_summary()
         except Mcl3dError:
             self.close()
             raise
@@ -92,10 +118,11 @@ class McapSource:
         self.profile = header.profile or "-"
         self.library = header.library or "-"
         self.format = f"MCAP ({self.profile})"
+        if self.damage is not None:
+            self.format = (f"MCAP ({self.profile}; truncated or damaged at byte "
+                           f"{self.damage.damaged_at_byte:,}: read up to it)")
         self._decoders: dict[int, Callable] = {}
-        self._indexed = summary is not None and bool(summary.chunk_indexes)
-        if summary is None or not summary.channels or summary.statistics is None:
-            summary = self._scan_summary()
+        self._indexed = self._reader is not None and bool(summary.chunk_indexes)
         self._schemas = summary.schemas
         self._channels = summary.channels
         stats = summary.statistics
@@ -116,28 +143,71 @@ class McapSource:
             if stats:
                 info.count += counts.get(cid, 0)
 
-    def _scan_summary(self):
+    def _records(self) -> Iterator[object]:
+        """The records in file order, up to the end or the first damage (then
+        the whole records of the damaged chunk); a damage is recorded in `damage`, or raised
+        when no message comes before it. Each pass has its own file handle: passes may nest
+        (static transforms read during a scan pass)."""
+        size = self.path.stat().st_size
+        good, counts, channels = 0, {}, {}
+
+        def seen(record) -> None:
+            if isinstance(record, Channel):
+                channels[record.id] = record.topic
+            elif isinstance(record, Message):
+                topic = channels.get(record.channel_id, "?")
+                counts[topic] = counts.get(topic, 0) + 1
+
+        try:
+            with open(self.path, "rb") as f:
+                for record in StreamReader(f, record_size_limit=size).records:
+                    seen(record)
+                    good = f.tell()
+                    yield record
+        except Exception as exc:
+            detail = (str(exc).strip() or type(exc).__name__).splitlines()[0][:160]
+            for record in partial_chunk_records(self.path, good):
+                seen(record)
+                yield record
+            if not counts:
+                raise LogFormatError(f"{self.path}: the log is truncated or damaged before its "
+                                     f"first message ({detail}); nothing in it can be read. "
+                                     "Re-copy or re-record it.") from None
+            self.damage = StreamDamage(good, size, counts, detail)
+
+    def _scan_summary(self) -> tuple[Header, Summary]:
         """A log without a (complete) summary: one streaming pass to learn channels and counts."""
-        summary = Summary()
+        header, summary = Header(profile="", library=""), Summary()
         stats = Statistics(message_count=0, schema_count=0, channel_count=0,
                            attachment_count=0, metadata_count=0, chunk_count=0,
                            message_start_time=0, message_end_time=0, channel_message_counts={})
-        self._file.seek(0)
-        try:
-            for schema, channel, message in NonSeekingReader(self._file).iter_messages():
-                if schema is not None:
-                    summary.schemas[schema.id] = schema
-                summary.channels[channel.id] = channel
+        for record in self._records():
+            if isinstance(record, Header):
+                header = record
+            elif isinstance(record, Schema):
+                summary.schemas[record.id] = record
+            elif isinstance(record, Channel):
+                summary.channels[record.id] = record
+            elif isinstance(record, Message):
                 counts = stats.channel_message_counts
-                counts[channel.id] = counts.get(channel.id, 0) + 1
-                if stats.message_count == 0 or message.log_time < stats.message_start_time:
-                    stats.message_start_time = message.log_time
-                stats.message_end_time = max(stats.message_end_time, message.log_time)
+                counts[record.channel_id] = counts.get(record.channel_id, 0) + 1
+                if stats.message_count == 0 or record.log_time < stats.message_start_time:
+                    stats.message_start_time = record.log_time
+                stats.message_end_time = max(stats.message_end_time, record.log_time)
                 stats.message_count += 1
-        except Exception as exc:
-            raise _corrupt(self.path, exc) from None
+        if self.damage is not None:
+            self._reader = None  # its indexes would lead into the damage
         summary.statistics = stats
-        return summary
+        return header, summary
+
+    def _streamed(self, topics: list[str]) -> Iterator[tuple[object, Message]]:
+        """(channel, message) on `topics` in file order, up to the damage."""
+        wanted = set(topics)
+        for record in self._records():
+            if isinstance(record, Message):
+                channel = self._channels.get(record.channel_id)
+                if channel is not None and channel.topic in wanted:
+                    yield channel, record
 
     def _decoder(self, channel_id: int) -> Callable:
         decode = self._decoders.get(channel_id)
@@ -184,8 +254,12 @@ class McapSource:
         if reverse and not self._indexed:
             raise NotImplementedError("reverse reading needs an MCAP with chunk indexes")
         try:
-            it = self._reader.iter_messages(topics=topics, log_time_order=True, reverse=reverse)
-            for _schema, channel, message in it:
+            if self._reader is None:
+                it = self._streamed(topics)
+            else:
+                it = ((c, m) for _s, c, m in self._reader.iter_messages(
+                    topics=topics, log_time_order=True, reverse=reverse))
+            for channel, message in it:
                 decode = self._decoder(channel.id)
                 try:
                     msg = decode(message.data)
