@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from mcl3d.core import geometry
+from mcl3d.core.checkpoint import write_checkpoint_summary
 from mcl3d.core.config import Section, save
 from mcl3d.core.outputs import atomic_open, check_writable
 from mcl3d.evaluation.run_plots import LOCALIZE_PICTURE, localize_figure, write_png
@@ -70,6 +71,20 @@ def write_outputs(paths: dict[str, Path], results: list[LocalizationResult],
         json.dump(summary.to_json(), f, indent=2, default=_json_default)
     points = np.zeros((0, 3)) if map_points is None else map_points
     write_png(paths["picture"], localize_figure(results, points, gt, map_cell_m))
+
+
+def write_checkpoint(paths: dict[str, Path], out) -> None:
+    """The trajectory so far of a run under way (`out`: its `LocalizeResult`) and the cheap
+    part of its summary, marked as a checkpoint; the final outputs replace them."""
+    if not out.results:
+        return
+    traj = Trajectory.from_ns(out.stamps_ns, np.stack([r.T_map_lidar for r in out.results]))
+    write_tum(paths["tum"], traj)
+    write_kitti(paths["kitti"], traj)
+    write_checkpoint_summary(paths["summary"], {
+        "scans": len(out.results), "skipped_scans": out.skipped_scans,
+        "motion_source": out.motion_source, "final_state": out.results[-1].state.value,
+        "warnings": out.warnings, "faults": out.faults.as_dict()})
 
 
 def _json_default(value):

@@ -4,7 +4,9 @@
 the map -> open the log and choose the motion source -> initialize the particles -> filter
 every scan (with timing and progress) -> write the trajectory (TUM + KITTI), the per-scan
 CSV, the effective config, a picture of the run (localize.png) and optionally a result MCAP
--> summary (convergence, ATE against ground truth, ms per stage).
+-> summary (convergence, ATE against ground truth, ms per stage). Every
+`CHECKPOINT_INTERVAL_S` of wall time the trajectory so far and a summary marked as a
+checkpoint are written, so a crash keeps them; the final outputs replace them.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import numpy as np
 from pydantic import Field
 
 from mcl3d.core import geometry, runtime
+from mcl3d.core.checkpoint import Checkpointer
 from mcl3d.core.config import Section
 from mcl3d.core.errors import InputError, RunInterrupted
 from mcl3d.core.outputs import output_folder
@@ -44,7 +47,7 @@ from mcl3d.localization.log_inputs import (
     make_motion_source,
 )
 from mcl3d.localization.motion_source import MotionSource, MotionSourceConfig
-from mcl3d.localization.output_files import check_outputs, write_outputs
+from mcl3d.localization.output_files import check_outputs, write_checkpoint, write_outputs
 from mcl3d.localization.sensor_model import MIN_SCAN_POINTS
 from mcl3d.localization.state import EmptyScan, FilterState, LocalizationResult
 from mcl3d.maps.export import surface_points
@@ -117,7 +120,7 @@ def _run(req: LocalizeRequest, on_progress: ProgressCallback | None) -> Localize
     info = runtime.init(req.backend)
     tsdf = load_map(Path(req.map), f16=False)
     try:
-        out = _run_filter(req, tsdf, on_progress)
+        out = _run_filter(req, tsdf, paths, on_progress)
         map_points = surface_points(tsdf.geometry, tsdf.blocks())  # for the picture
     finally:
         tsdf.destroy()  # the map's device memory; the particles are small
@@ -137,7 +140,8 @@ def _run(req: LocalizeRequest, on_progress: ProgressCallback | None) -> Localize
     return out
 
 
-def _run_filter(req: LocalizeRequest, tsdf, on_progress) -> LocalizeResult:
+def _run_filter(req: LocalizeRequest, tsdf, paths: dict[str, Path], on_progress
+                ) -> LocalizeResult:
     cfg, topics = req.config, req.topics
     out = LocalizeResult()
     with LogReader(Path(req.log), points_topic=topics.points, imu_topic=topics.imu,
@@ -159,6 +163,7 @@ def _run_filter(req: LocalizeRequest, tsdf, on_progress) -> LocalizeResult:
         total = min(n_scans, cfg.max_scans or n_scans)
         with _result_writer(req.result_mcap, req.force) as writer:
             loop = _ScanLoop(loc, source, cfg, out, total, writer, on_progress)
+            loop.checkpoint = Checkpointer(lambda: write_checkpoint(paths, out))
             try:
                 loop.run(reader)
             except KeyboardInterrupt:
@@ -204,6 +209,7 @@ class _ScanLoop:
         self.total, self.writer, self.on_progress = total, writer, on_progress
         self.prev_ns: int | None = None
         self.best_match = 0.0
+        self.checkpoint: Checkpointer | None = None  # writes the outputs so far now and then
 
     def run(self, reader) -> None:
         pending: deque = deque()
@@ -252,6 +258,8 @@ class _ScanLoop:
             PROGRESS_STAGE, len(out.results), self.total,
             status=f"{result.state.value:<12} match {result.match_ratio:.2f}",
             rate=f"{ms:.0f} ms/update"))
+        if self.checkpoint is not None:
+            self.checkpoint.tick()
         return self.cfg.max_scans is not None and len(out.results) >= self.cfg.max_scans
 
     def _check_overlap(self, result: LocalizationResult) -> None:

@@ -6,7 +6,7 @@ covariances, register against every keyframe's Gaussian voxel maps (two resoluti
 style) in one batched GICP, and insert the scan as a keyframe when less than
 `keyframe_overlap` of it lands in the existing keyframes' voxels. The relative motion's
 covariance is the inverse GICP Hessian; a Hessian with a near-null direction is reported as
-degenerate (a corridor, an empty or tiny scan) instead of passing silently.
+degenerate (a corridor, a flat field, an empty or tiny scan) instead of passing silently.
 
 Poses are `T_world_lidar` at each scan's header stamp; the world frame is the first scan's
 lidar frame.
@@ -56,8 +56,11 @@ class OdometryConfig(Section):
     deskew: bool = Field(True, description="undo motion within a sweep (per-point times)")
     use_imu: bool = Field(True, description="predict with IMU preintegration when the log "
                           "has an IMU")
-    degeneracy_ratio: float = Field(0.05, gt=0, description="degenerate when the Hessian's "
-                                    "translation block has min/max eigenvalue below this")
+    degeneracy_ratio: float = Field(0.006, gt=0, description="degenerate when the weakest "
+                                    "translation direction holds less than this share of the "
+                                    "Hessian's translation information (min eigenvalue / "
+                                    "trace; 0.001-0.003 in a corridor or on a plane, >= 0.015 in "
+                                    "rooms, halls and forests)")
     rotation_degeneracy_ratio: float = Field(1e-5, gt=0, description="the same for rotation")
     validate_surfaces: bool = Field(True, description="drop points whose surface faces away "
                                     "from the keyframe that saw it (GLIM's surface validation)")
@@ -96,22 +99,29 @@ class OdometryFrame:
     wall_ms: float = 0.0  # time `step` took
 
 
-def degeneracy(H: np.ndarray, translation_ratio: float, rotation_ratio: float) -> list[str]:
+def degeneracy(H: np.ndarray, translation_share: float, rotation_ratio: float) -> list[str]:
     """Warnings for directions the scan barely constrains, naming them (lidar frame).
 
-    The score is the smallest over the largest eigenvalue of H's translation (or rotation)
-    block. A plane constrains its normal ~1000x more than its own directions (normal variance
-    1e-3), so a corridor scores ~0.03 along its axis where a room scores ~0.3-1. Rotation
-    blocks are naturally anisotropic (a short lever for roll, a long one for yaw), so only
-    an extreme ratio counts there."""
+    Translation: the smallest eigenvalue of H's translation block over its trace, the share
+    of the information the weakest direction gets. A correspondence adds ~1000x more along
+    its plane's normal (variance 1e-3) than along the plane, and the trace counts every
+    correspondence once along its normal, so the share is the fraction of correspondences
+    facing that direction: 0.001 on a flat field (only the planes' own regularization),
+    ~0.003 along an endless corridor (its edges), >= 0.015 in simulated offices, halls and
+    forests; a floor outweighing the walls 20:1 (min/max below 0.05, once a warning) is not
+    degenerate, the walls still pin x and y to millimetres. Rotation blocks are naturally
+    anisotropic (a short lever for roll, a long one for yaw), so only an extreme min/max
+    ratio counts there."""
     out = []
-    for name, block, limit in (("rotation", H[:3, :3], rotation_ratio),
-                               ("translation", H[3:, 3:], translation_ratio)):
+    for name, block, limit, measure in (
+            ("rotation", H[:3, :3], rotation_ratio, "eigenvalue ratio"),
+            ("translation", H[3:, 3:], translation_share, "information share")):
         w, U = np.linalg.eigh(0.5 * (block + block.T))
-        ratio = max(w[0], 0.0) / max(w[-1], 1e-30)
-        if ratio < limit:
+        scale = w[-1] if name == "rotation" else w.sum()
+        score = max(w[0], 0.0) / max(scale, 1e-30)
+        if score < limit:
             d = U[:, 0] * np.sign(U[np.argmax(np.abs(U[:, 0])), 0])
-            out.append(f"degenerate {name}: eigenvalue ratio {ratio:.2g} along "
+            out.append(f"degenerate {name}: {measure} {score:.2g} along "
                        f"[{d[0]:.2f}, {d[1]:.2f}, {d[2]:.2f}] (lidar frame)")
     return out
 

@@ -1,8 +1,10 @@
 """What an odometry run reports: the typed summary behind odometry_summary.json and the CLI's
-table, and its accuracy against the log's ground truth."""
+table, its warnings (a stretch of degenerate scans as one), and its accuracy against the log's
+ground truth."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Protocol
@@ -13,8 +15,10 @@ from mcl3d.core.errors import Mcl3dError
 from mcl3d.evaluation.metrics import Evaluation, evaluate
 from mcl3d.io.logs.faults import LogFaults
 from mcl3d.io.trajectory import Trajectory
+from mcl3d.odometry.lidar_odometry import OdometryFrame
 
 RPE_DELTA_M = 1.0  # RPE pose pairs this far apart along the path
+DEGENERATE = "degenerate "  # how lidar_odometry.degeneracy's warnings start
 
 
 @dataclass(frozen=True)
@@ -47,6 +51,70 @@ class OdometryAccuracy:
 
 
 @dataclass(frozen=True)
+class DegenerateStretch:
+    """Consecutive scans degenerate in the same block ("translation" or "rotation");
+    `detail` is the first scan's warning (the score and the direction)."""
+
+    block: str
+    first_scan: int
+    last_scan: int
+    first_stamp_ns: int
+    last_stamp_ns: int
+    detail: str
+
+    @property
+    def scans(self) -> int:
+        return self.last_scan - self.first_scan + 1
+
+    def warning(self) -> str:
+        if self.scans == 1:
+            return f"scan {self.first_scan} ({self.first_stamp_ns * 1e-9:.3f} s): {self.detail}"
+        return (f"scans {self.first_scan} to {self.last_scan} ({self.first_stamp_ns * 1e-9:.3f}"
+                f" to {self.last_stamp_ns * 1e-9:.3f} s, {self.scans} scans): {self.detail} "
+                "at the first")
+
+    def as_dict(self) -> dict:
+        return {"block": self.block, "first_scan": self.first_scan,
+                "last_scan": self.last_scan, "scans": self.scans,
+                "first_stamp_ns": self.first_stamp_ns, "last_stamp_ns": self.last_stamp_ns,
+                "detail": self.detail}
+
+
+def run_warnings(frames: Sequence[OdometryFrame]
+                 ) -> tuple[list[str], list[DegenerateStretch]]:
+    """The run's warnings in scan order, each naming its scan, and its degenerate stretches:
+    a corridor degenerates scan after scan, and one warning per stretch keeps the others
+    visible."""
+    listed: list[tuple[int, str]] = []
+    stretches: list[DegenerateStretch] = []
+    open_: dict[str, tuple[int, str]] = {}  # block -> (first scan, its warning)
+
+    def close(block: str, last: int) -> None:
+        first, detail = open_.pop(block)
+        stretch = DegenerateStretch(block, first, last, frames[first].stamp_ns,
+                                    frames[last].stamp_ns, detail)
+        stretches.append(stretch)
+        listed.append((first, stretch.warning()))
+
+    for i, frame in enumerate(frames):
+        blocks = {}
+        for w in frame.warnings:
+            if w.startswith(DEGENERATE):
+                blocks[w[len(DEGENERATE):].split(":")[0]] = w
+            else:
+                listed.append((i, f"scan {i} ({frame.stamp_ns * 1e-9:.3f} s): {w}"))
+        for block in [b for b in open_ if b not in blocks]:
+            close(block, i - 1)
+        for block, w in blocks.items():
+            open_.setdefault(block, (i, w))
+    for block in list(open_):
+        close(block, len(frames) - 1)
+    listed.sort(key=lambda item: item[0])  # stable: a scan's own order kept
+    stretches.sort(key=lambda st: st.first_scan)
+    return [w for _, w in listed], stretches
+
+
+@dataclass(frozen=True)
 class OdometrySummary:
     """One run in numbers; `as_dict` is odometry_summary.json."""
 
@@ -62,6 +130,7 @@ class OdometrySummary:
     accuracy: OdometryAccuracy | None  # None without ground truth
     accuracy_error: str | None = None  # why the accuracy could not be computed
     faults: LogFaults = field(default_factory=LogFaults)  # the log's messages dropped
+    degenerate_stretches: list[DegenerateStretch] = field(default_factory=list)
 
     def as_dict(self) -> dict:
         return {"scans": self.scans, "interrupted": self.interrupted,
@@ -70,7 +139,8 @@ class OdometrySummary:
                 "degenerate_frames": self.degenerate_frames, "notes": self.notes,
                 "warnings": self.warnings, "num_warnings": self.num_warnings,
                 "evaluation": evaluation_entry(self.accuracy, self.accuracy_error),
-                "faults": self.faults.as_dict()}
+                "faults": self.faults.as_dict(),
+                "degenerate_stretches": [st.as_dict() for st in self.degenerate_stretches]}
 
 
 class Accuracy(Protocol):

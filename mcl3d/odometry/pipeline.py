@@ -4,7 +4,9 @@ Steps: check the outputs, open the log, find the lidar-IMU extrinsic, run `Lidar
 every scan with the IMU samples since the previous one, write the trajectory (TUM and KITTI),
 the per-frame relative motions with covariances, the effective config, and a summary (ms per
 frame, keyframes, warnings, ATE/RPE and drift against the log's ground truth when it has
-one, the messages dropped for faults). Ctrl-C keeps the frames done so far. The contract:
+one, the messages dropped for faults). Ctrl-C keeps the frames done so far; every
+`CHECKPOINT_INTERVAL_S` of wall time the trajectory so far (TUM, KITTI) and a summary marked
+as a checkpoint are written, so a crash keeps them too. The contract:
 `run(request, on_progress=None)`.
 """
 
@@ -17,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from mcl3d.core import config as config_io
+from mcl3d.core.checkpoint import Checkpointer, write_checkpoint_summary
 from mcl3d.core.errors import Mcl3dError, RunInterrupted
 from mcl3d.core.outputs import atomic_open, check_writable, output_folder
 from mcl3d.core.progress import Progress, ProgressCallback, report
@@ -28,6 +31,7 @@ from mcl3d.odometry.odometry_summary import (
     FrameTimesMs,
     OdometrySummary,
     evaluate_odometry,
+    run_warnings,
 )
 from mcl3d.odometry.scan_feed import LidarImuFeed
 
@@ -98,6 +102,7 @@ def _run(req: OdometryRequest, on_progress: ProgressCallback | None) -> Odometry
         if req.max_scans is not None and total is not None:
             total = min(total, req.max_scans)
         feed = LidarImuFeed(reader, cfg.use_imu)
+        checkpoint = Checkpointer(lambda: _write_checkpoint(outputs, frames, feed))
         try:
             for cloud, imu_rows, T_lidar_imu in feed:
                 if odo is None:
@@ -105,6 +110,7 @@ def _run(req: OdometryRequest, on_progress: ProgressCallback | None) -> Odometry
                 odo.T_lidar_imu = T_lidar_imu
                 frames.append(odo.step(cloud.points, cloud.times_s, cloud.stamp_ns, imu_rows))
                 report(on_progress, Progress("odometry", len(frames), total))
+                checkpoint.tick()
                 if req.max_scans is not None and len(frames) >= req.max_scans:
                     break
         except KeyboardInterrupt:
@@ -118,10 +124,28 @@ def _run(req: OdometryRequest, on_progress: ProgressCallback | None) -> Odometry
     return OdometryResult(frames, outputs, summary)
 
 
+def _trajectory(frames: list[OdometryFrame]) -> Trajectory:
+    stamps = np.array([f.stamp_ns for f in frames], dtype=np.int64)
+    return Trajectory.from_ns(stamps, np.stack([f.T_world_lidar for f in frames]))
+
+
+def _write_checkpoint(outputs: OdometryOutputs, frames: list[OdometryFrame],
+                      feed: LidarImuFeed) -> None:
+    """The trajectory so far and the cheap part of the summary (no accuracy, no motions)."""
+    traj = _trajectory(frames)
+    write_tum(outputs.tum, traj)
+    write_kitti(outputs.kitti, traj)
+    write_checkpoint_summary(outputs.summary, {
+        "scans": len(frames), "keyframes": int(sum(f.keyframe for f in frames)),
+        "path_length_m": traj.path_length_m(),
+        "degenerate_frames": int(sum(f.degenerate for f in frames)),
+        "faults": feed.reader.faults.as_dict()})
+
+
 def _write(outputs: OdometryOutputs, frames: list[OdometryFrame], cfg: OdometryConfig,
            feed: LidarImuFeed, interrupted: bool) -> OdometrySummary:
     stamps = np.array([f.stamp_ns for f in frames], dtype=np.int64)
-    traj = Trajectory.from_ns(stamps, np.stack([f.T_world_lidar for f in frames]))
+    traj = _trajectory(frames)
     write_tum(outputs.tum, traj)
     write_kitti(outputs.kitti, traj)
     with atomic_open(outputs.motion, "wb") as f:
@@ -132,8 +156,7 @@ def _write(outputs: OdometryOutputs, frames: list[OdometryFrame], cfg: OdometryC
                  keyframe=np.array([fr.keyframe for fr in frames]))
     config_io.save(cfg, outputs.config)
     ms = np.array([f.wall_ms for f in frames[1:]] or [frames[0].wall_ms])
-    warnings = [f"scan {i} ({f.stamp_ns * 1e-9:.3f} s): {w}" for i, f in enumerate(frames)
-                for w in f.warnings]
+    warnings, stretches = run_warnings(frames)
     accuracy, accuracy_error = evaluate_odometry(traj, feed.ground_truth())
     summary = OdometrySummary(
         scans=len(frames), interrupted=interrupted,
@@ -141,7 +164,8 @@ def _write(outputs: OdometryOutputs, frames: list[OdometryFrame], cfg: OdometryC
         ms_per_frame=FrameTimesMs.of(ms),
         degenerate_frames=int(sum(f.degenerate for f in frames)), notes=feed.notes,
         warnings=warnings[:MAX_LISTED_WARNINGS], num_warnings=len(warnings),
-        accuracy=accuracy, accuracy_error=accuracy_error, faults=feed.reader.faults)
+        accuracy=accuracy, accuracy_error=accuracy_error, faults=feed.reader.faults,
+        degenerate_stretches=stretches)
     with atomic_open(outputs.summary, "w") as f:
         json.dump(summary.as_dict(), f, indent=2)
     return summary

@@ -9,7 +9,11 @@ keyframe clouds, PLY), the per-frame log (CSV), the effective config, a summary 
 SLAM and of odometry alone against the log's ground truth, messages dropped for faults) and a
 picture of the run (slam.png).
 Optionally build a TSDF map from the result, so `slam` -> `localize` is one pipeline.
-Ctrl-C keeps everything done so far. The contract: `run(request, on_progress=None)`.
+Ctrl-C keeps everything done so far. Every `CHECKPOINT_INTERVAL_S` of wall time the run
+writes the trajectories that need no end-of-run work, the online one (slam_online.tum) and
+the odometry one (odometry.tum), and a summary marked as a checkpoint, so a crash keeps them;
+slam.tum is placed by the keyframes at the end and is written then. The contract:
+`run(request, on_progress=None)`.
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from mcl3d.core import config as config_io
+from mcl3d.core.checkpoint import Checkpointer, write_checkpoint_summary
 from mcl3d.core.errors import Mcl3dError, RunInterrupted
 from mcl3d.core.outputs import atomic_open, check_writable, output_folder
 from mcl3d.core.progress import Progress, ProgressCallback, report
@@ -121,6 +126,7 @@ def _run(req: SlamRequest, outputs: SlamOutputs, on_progress: ProgressCallback |
         if req.max_scans is not None and total is not None:
             total = min(total, req.max_scans)
         feed = LidarImuFeed(reader, cfg.odometry.use_imu)
+        checkpoint = Checkpointer(lambda: _write_checkpoint(outputs, slam, feed))
         try:
             for cloud, imu_rows, T_lidar_imu in feed:
                 if slam is None:
@@ -128,6 +134,7 @@ def _run(req: SlamRequest, outputs: SlamOutputs, on_progress: ProgressCallback |
                 slam.odometry.T_lidar_imu = T_lidar_imu
                 slam.step(cloud.points, cloud.times_s, cloud.stamp_ns, imu_rows)
                 report(on_progress, Progress("slam", len(slam.frames), total))
+                checkpoint.tick()
                 if req.max_scans is not None and len(slam.frames) >= req.max_scans:
                     break
         except KeyboardInterrupt:
@@ -157,6 +164,22 @@ def write_ply(path: Path, points: np.ndarray) -> None:
     with atomic_open(path, "wb") as f:
         f.write(header.encode("ascii"))
         f.write(pts.tobytes())
+
+
+def _write_checkpoint(outputs: SlamOutputs, slam: MonteCarloSlam, feed: LidarImuFeed) -> None:
+    """The online and odometry trajectories so far and the cheap part of the summary."""
+    frames = slam.frames
+    stamps_ns = np.array([f.stamp_ns for f in frames], dtype=np.int64)
+    online = Trajectory.from_ns(stamps_ns, np.stack([f.T_world_lidar for f in frames]))
+    write_tum(outputs.online, online)
+    write_tum(outputs.odometry,
+              Trajectory.from_ns(stamps_ns, np.stack([f.T_odom_lidar for f in frames])))
+    last = frames[-1]
+    write_checkpoint_summary(outputs.summary, {
+        "scans": len(frames), "particles": slam.cfg.particles,
+        "keyframes": int(last.num_keyframes), "path_length_m": online.path_length_m(),
+        "final_hypotheses": int(last.hypotheses), "final_ess": float(last.ess),
+        "faults": feed.reader.faults.as_dict()})
 
 
 def _write(outputs: SlamOutputs, slam: MonteCarloSlam, feed: LidarImuFeed,

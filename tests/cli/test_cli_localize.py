@@ -204,6 +204,27 @@ def test_interrupt_keeps_the_trajectory(data, tmp_path):
     assert np.loadtxt(tmp_path / "o" / "trajectory.tum").shape == (3, 8)
 
 
+def test_a_crash_keeps_the_checkpointed_trajectory(data, tmp_path, monkeypatch):
+    from mcl3d.core.checkpoint import CHECKPOINT_ENV
+    from mcl3d.localization.pipeline import LocalizeConfig, LocalizeRequest, run
+
+    monkeypatch.setenv(CHECKPOINT_ENV, "0")  # a checkpoint after every scan
+    cfg = LocalizeConfig.model_validate({"localizer": {"particles": 1000, "init": {
+        "mode": "gt", "std": [0.05, 0.05, 0.02, 0.573, 0.573, 1.146]}}})
+
+    def crash_at_five(progress):
+        if progress.done == 5:
+            raise RuntimeError("crash")
+
+    with pytest.raises(RuntimeError, match="crash"):
+        run(LocalizeRequest(data / "room.mcap", data / "room.tsdf", tmp_path / "o", cfg,
+                            backend="cpu"), on_progress=crash_at_five)
+    assert np.loadtxt(tmp_path / "o" / "trajectory.tum").shape == (4, 8)
+    assert np.loadtxt(tmp_path / "o" / "trajectory.kitti").shape == (4, 12)
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert summary["checkpoint"] is True and summary["scans"] == 4
+
+
 def test_missing_inputs_leave_no_output_folder(data, tmp_path):
     out = tmp_path / "out"
     r = invoke("localize", tmp_path / "nope.mcap", "--map", data / "room.tsdf", "-o", out,
