@@ -328,7 +328,7 @@ def build_map(
     with ProgressBars() as bars:
         result = run(request, bars.on_progress)
     console.print(summary_table("Map built", summary_rows(result, info.backend)))
-    _print_notes([], result.faults.warnings(), 0)
+    _print_notes([], [], 0, result.faults.warnings())
 
 
 @app.command("map-info")
@@ -443,8 +443,7 @@ def localize(
         result = run(request, on_progress=bars.on_progress)
     s = result.summary
     console.print(summary_table("Localization", summary_rows(s, out)))
-    for w in [*s.faults.warnings(), *s.warnings[:5]]:
-        console.print(f"[yellow]warning:[/] {w}")
+    _print_notes([], s.warnings, len(s.warnings), s.faults.warnings())
 
 
 @app.command()
@@ -523,7 +522,8 @@ def odometry(
     _print_notes(s.notes, s.warnings, s.num_warnings, s.faults.warnings())
 
 
-def _print_notes(notes: list[str], warnings: list[str], num_warnings: int, faults=()) -> None:
+def _print_notes(notes: list[str], warnings: list[str], num_warnings: int,
+                 faults: list[str]) -> None:
     """A run's notes, its messages dropped for faults (a line per kind) and first warnings."""
     from mcl3d.console import console
 

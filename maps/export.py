@@ -10,20 +10,10 @@ import open3d.core as o3c
 
 from mcl3d.core.errors import InputError, MapError
 from mcl3d.core.outputs import atomic_path
-from mcl3d.maps.tsdf import BLOCK, BlockData, MapGeometry
+from mcl3d.maps.tsdf import BLOCK, BlockData, MapGeometry, surface_points
 
 MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off", ".gltf", ".glb")
 POINT_SUFFIXES = (".ply", ".pcd", ".xyz", ".pts")
-
-
-def surface_points(geometry: MapGeometry, data: BlockData, min_weight: float = 1e-6
-                   ) -> np.ndarray:
-    """Centres of observed voxels within half a voxel diagonal of the zero level set."""
-    near = (data.weight > min_weight) & (np.abs(data.sdf) <= 0.5 * np.sqrt(3)
-                                         * geometry.voxel_size_m)
-    b, i, j, k = np.nonzero(near)
-    vox = data.coords[b].astype(np.int64) * BLOCK + np.stack([i, j, k], axis=1)
-    return np.asarray(geometry.origin_m) + (vox + 0.5) * geometry.voxel_size_m
 
 
 def level_set_mesh(geometry: MapGeometry, data: BlockData, min_weight: float = 1e-6):

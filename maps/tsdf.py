@@ -332,3 +332,13 @@ def block_stats(geometry: MapGeometry, data: BlockData, bytes_per_block: int) ->
         extent_lo_m=[round(float(x), 3) for x in lo],
         extent_hi_m=[round(float(x), 3) for x in hi],
     )
+
+
+def surface_points(geometry: MapGeometry, data: BlockData, min_weight: float = 1e-6
+                   ) -> np.ndarray:
+    """Centres of observed voxels within half a voxel diagonal of the zero level set."""
+    near = (data.weight > min_weight) & (np.abs(data.sdf) <= 0.5 * np.sqrt(3)
+                                         * geometry.voxel_size_m)
+    b, i, j, k = np.nonzero(near)
+    vox = data.coords[b].astype(np.int64) * BLOCK + np.stack([i, j, k], axis=1)
+    return np.asarray(geometry.origin_m) + (vox + 0.5) * geometry.voxel_size_m

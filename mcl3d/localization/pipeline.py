@@ -50,8 +50,8 @@ from mcl3d.localization.motion_source import MotionSource, MotionSourceConfig
 from mcl3d.localization.output_files import check_outputs, write_checkpoint, write_outputs
 from mcl3d.localization.sensor_model import MIN_SCAN_POINTS
 from mcl3d.localization.state import EmptyScan, FilterState, LocalizationResult
-from mcl3d.maps.export import surface_points
 from mcl3d.maps.map_file import load_map
+from mcl3d.maps.tsdf import surface_points
 
 NO_OVERLAP_SCANS = 10  # global init: give up when no scan matched the map by then
 NO_OVERLAP_MATCH = 0.05
