@@ -77,7 +77,7 @@ def test_a_log_damaged_before_its_first_message_stops(clean_log, tmp_path):
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(clean_log.read_bytes()[:2000])
     out = tmp_path / "odo"
-    result = CliRunner().invoke(app, ["odometry", str(cut), "-o", str(out)])
+    result = CliRunner().invoke(app, ["odometry", str(cut), "-o", str(out), "--backend", "cpu"])
     _one_error_line(result, "damaged before its first message")
     assert not out.exists()
 
@@ -96,7 +96,7 @@ def test_scans_in_millimetres_stop_before_work(clean_log, tmp_path):
     assert not (tmp_path / "cli").exists()
     for command, out in (("odometry", tmp_path / "odo"), ("slam", tmp_path / "slam"),
                          ("build-map", tmp_path / "map.tsdf")):
-        result = CliRunner().invoke(app, [command, str(log), "-o", str(out)])
+        result = CliRunner().invoke(app, [command, str(log), "-o", str(out), "--backend", "cpu"])
         _one_error_line(result, "coordinates look like millimetres")
         assert not out.exists()
 
@@ -105,7 +105,7 @@ def test_a_planar_scanner_stops_6dof_commands(clean_log, tmp_path):
     log = _rewritten(clean_log, tmp_path / "planar.mcap", lambda p: p * [1.0, 1.0, 0.0])
     for command in ("odometry", "slam"):
         out = tmp_path / command
-        result = CliRunner().invoke(app, [command, str(log), "-o", str(out)])
+        result = CliRunner().invoke(app, [command, str(log), "-o", str(out), "--backend", "cpu"])
         _one_error_line(result, "one ring: every scan lies in one plane")
         assert "6-DoF is not observable" in str(result.exception)
         assert not out.exists()

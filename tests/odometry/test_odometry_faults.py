@@ -81,7 +81,8 @@ def test_odometry_survives_recorder_faults(faulty_log, tmp_path, ti_runtime):
 def test_slam_survives_recorder_faults(faulty_log, tmp_path, ti_runtime):
     out = tmp_path / "slam"
     result = CliRunner().invoke(app, ["slam", str(faulty_log), "-o", str(out), "--particles",
-                                      "100", "--max-scans", "15", "--seed", "1"])
+                                      "100", "--max-scans", "15", "--seed", "1",
+                                      "--backend", "cpu"])
     assert result.exit_code == 0, result.output
     assert "1 scan dropped with the same stamp as the previous one" in result.output
     summary = json.loads((out / "slam_summary.json").read_text())
