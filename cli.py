@@ -231,18 +231,23 @@ def info(
 @app.command()
 def simulate(
     world: Annotated[str, typer.Argument(
-        help="World: office (rooms + ramps), building (floors + elevator), forest (tree rows) "
-             "or arena (symmetric hall).", show_default=False)],
+        help="World: office (rooms + ramps), building (floors + elevator), forest (tree rows), "
+             "arena (symmetric hall) or warehouse (rack aisles + ramp).", show_default=False)],
     output: Annotated[Path, typer.Option(
         "-o", "--output", help="The ROS 2 MCAP log to write; NAME_gt.tum (ground truth) and "
                                "NAME_config.yaml (effective config) go beside it.",
         show_default=False)],
-    sensor: Annotated[str, typer.Option(
-        "--sensor", help="LiDAR: vlp16, os0-64, os1-64 or mid360.")] = "vlp16",
+    sensor: Annotated[str | None, typer.Option(
+        "--sensor", help="LiDAR: vlp16, os0-64, os1-64 or mid360 (default: mid360 for "
+                         "paper-forest, else vlp16).", show_default=False)] = None,
     trajectory: Annotated[str, typer.Option(
         "--trajectory", help="ground, loop, handheld, drone (forest, arena), elevator "
-                             "(building) or kidnap.")] = "ground",
-    duration: Annotated[float, typer.Option("--duration", help="Seconds to simulate.")] = 10.0,
+                             "(building), kidnap, paper-forest (forest) or paper-elevator "
+                             "(building).")] = "ground",
+    duration: Annotated[float | None, typer.Option(
+        "--duration", help="Seconds to simulate (default: the route's own length for "
+                           "paper-forest and paper-elevator, else 10).",
+        show_default=False)] = None,
     seed: Annotated[int, typer.Option("--seed", help="Seed of the world, the path and every "
                                       "noise: same seed, same bytes.")] = 0,
     config: Annotated[Path | None, typer.Option(
@@ -414,6 +419,9 @@ def localize(
     max_scans: Annotated[int | None, typer.Option(help="Stop after this many scans.")] = None,
     config: Annotated[Path | None, typer.Option(
         help="YAML/TOML config (sections as in the saved config.yaml).")] = None,
+    preset: Annotated[str, typer.Option(help="Settings under --config and the flags: default "
+                                        "or paper (the MCL paper's model and filter).")
+                      ] = "default",
     points_topic: Annotated[str | None, typer.Option(help="Point-cloud topic.")] = None,
     imu_topic: Annotated[str | None, typer.Option(help="IMU topic.")] = None,
     odom_topic: Annotated[str | None, typer.Option(help="Odometry topic.")] = None,
@@ -429,14 +437,15 @@ def localize(
     from mcl3d.localization.localization_summary import summary_rows
     from mcl3d.localization.motion_source import KINDS
     from mcl3d.localization.pipeline import LocalizeConfig, LocalizeRequest, Topics, run
+    from mcl3d.localization.presets import localize_preset
 
     if motion is not None and motion not in KINDS:
         raise typer.BadParameter("--motion must be auto, odom, imu or constant_velocity")
     overrides = _localize_overrides(init, init_std, particles, min_particles, max_particles,
                                     points, seed, height_band, motion, max_scans)
-    cfg = config_mod.load(LocalizeConfig, config, overrides)
+    cfg = config_mod.load(LocalizeConfig, config, overrides, preset=localize_preset(preset))
     info = _init_backend(backend)
-    request = LocalizeRequest(log=log, map=map_file, output_dir=out, config=cfg,
+    request = LocalizeRequest(log=log, map=map_file, output_dir=out, config=cfg, preset=preset,
                               topics=Topics(points_topic, imu_topic, odom_topic, gt_topic),
                               force=force, result_mcap=result_mcap, backend=info.requested)
     with ProgressBars() as bars:
@@ -556,6 +565,8 @@ def slam(
              "for `mcl3d localize`.")] = None,
     config: Annotated[Path | None, typer.Option(
         help="YAML/TOML SLAM config (keys as in the saved slam_config.yaml).")] = None,
+    preset: Annotated[str, typer.Option(help="Settings under --config and the flags: default "
+                                        "or paper (the SLAM paper's filter).")] = "default",
     points_topic: Annotated[str | None, typer.Option(help="Point-cloud topic.")] = None,
     imu_topic: Annotated[str | None, typer.Option(help="IMU topic.")] = None,
     gt_topic: Annotated[str | None, typer.Option(help="Ground-truth topic.")] = None,
@@ -567,12 +578,13 @@ def slam(
     from mcl3d.console import ProgressBars, console, summary_table
     from mcl3d.core import config as config_io
     from mcl3d.slam.pipeline import SlamRequest, run
+    from mcl3d.slam.presets import preset as slam_preset
     from mcl3d.slam.slam_config import SlamConfig
     from mcl3d.slam.slam_summary import summary_rows
 
     overrides = {"particles": particles, "front_end.fov_deg": fov, "seed": seed,
                  "odometry.use_imu": False if no_imu else None}
-    cfg = config_io.load(SlamConfig, config, overrides)
+    cfg = config_io.load(SlamConfig, config, overrides, preset=slam_preset(preset))
     info = _init_backend(backend)
     with ProgressBars() as bars:
         result = run(SlamRequest(log=log, output_dir=out, config=cfg, force=force,

@@ -34,6 +34,10 @@ Runs are ordered by particle count, smallest first, so the expensive counts come
     python bench/study_global.py                    # seeds 1-10, N = 10k ... 300k
     python bench/study_global.py --report a.json b.json   # the table of finished runs
     python bench/study_global.py --kidnap 0 1 2 3 4 --json bench/results/study_kidnap.json
+
+`--preset NAME` runs every localization with the named settings of `mcl3d localize --preset`
+(mcl3d/localization/presets.py; `paper`: the MCL paper's model, initialization, resampling
+and estimate) instead of the defaults; runs, table rows and run folders carry the name.
 """
 
 from __future__ import annotations
@@ -218,15 +222,19 @@ class StopWhenStable:
 
 
 def localize_once(log: Path, tsdf: Path, out: Path, n: int, seed: int, args) -> dict:
+    from mcl3d.core import config as config_mod
     from mcl3d.core.errors import RunInterrupted
     from mcl3d.localization.pipeline import LocalizeConfig, LocalizeRequest, run
+    from mcl3d.localization.presets import localize_preset
 
-    cfg = LocalizeConfig.model_validate({"max_scans": args.max_scans, "localizer": {
-        "particles": n, "seed": seed, "init": {"mode": "global"}}})
+    cfg = config_mod.load(LocalizeConfig, None, {
+        "max_scans": args.max_scans, "localizer.particles": n, "localizer.seed": seed,
+        "localizer.init.mode": "global"}, preset=localize_preset(args.preset))
     stop = StopWhenStable(args.stable)
     t0 = time.perf_counter()
     try:
-        run(LocalizeRequest(log, tsdf, out, cfg, force=True, backend="cpu"), on_progress=stop)
+        run(LocalizeRequest(log, tsdf, out, cfg, force=True, backend="cpu", preset=args.preset),
+            on_progress=stop)
         stopped_early = False
     except RunInterrupted:
         stopped_early = True
@@ -238,22 +246,23 @@ def localize_once(log: Path, tsdf: Path, out: Path, n: int, seed: int, args) -> 
 
 def summarize(runs: list[dict], worlds, particles) -> list[dict]:
     rows = []
-    for world in worlds:
-        for n in particles:
-            rs = [r for r in runs if r["world"] == world and r["particles"] == n]
-            if not rs:
-                continue
-            ok = [r for r in rs if r["success"]]
-            rows.append({
-                "world": world, "particles": n, "runs": len(rs),
-                "success_rate": len(ok) / len(rs),
-                "median_scans_to_converge": float(np.median([r["scans_to_converge"]
-                                                             for r in ok])) if ok else None,
-                "median_rmse_after_m": float(np.median([r["rmse_after_m"] for r in ok]))
-                if ok else None,
-                "median_tracking_rmse_m": float(np.median(
-                    [r["rmse_after_filter_converged_m"] for r in ok])) if ok else None,
-                "median_ms_per_update": float(np.median([r["ms_per_update"] for r in rs]))})
+    presets = sorted({r.get("preset", "default") for r in runs})
+    for preset, world, n in ((p, w, n) for p in presets for w in worlds for n in particles):
+        rs = [r for r in runs if r["world"] == world and r["particles"] == n
+              and r.get("preset", "default") == preset]
+        if not rs:
+            continue
+        ok = [r for r in rs if r["success"]]
+        rows.append({
+            "preset": preset, "world": world, "particles": n, "runs": len(rs),
+            "success_rate": len(ok) / len(rs),
+            "median_scans_to_converge": float(np.median([r["scans_to_converge"]
+                                                         for r in ok])) if ok else None,
+            "median_rmse_after_m": float(np.median([r["rmse_after_m"] for r in ok]))
+            if ok else None,
+            "median_tracking_rmse_m": float(np.median(
+                [r["rmse_after_filter_converged_m"] for r in ok])) if ok else None,
+            "median_ms_per_update": float(np.median([r["ms_per_update"] for r in rs]))})
     return rows
 
 
@@ -262,11 +271,12 @@ def print_table(rows: list[dict]) -> None:
     from rich.table import Table
 
     table = Table(title="Global localization: success = last scans within 0.2 m and 3 deg")
-    for col in ("world", "particles", "runs", "success", "scans to converge (median)",
+    for col in ("preset", "world", "particles", "runs", "success", "scans to converge (median)",
                 "RMSE from then (median)", "RMSE once filter converged", "ms/update (median)"):
         table.add_column(col, justify="right")
     for r in rows:
-        table.add_row(r["world"], f"{r['particles']:,}", str(r["runs"]),
+        table.add_row(r.get("preset", "default"), r["world"], f"{r['particles']:,}",
+                      str(r["runs"]),
                       f"{100 * r['success_rate']:.0f} %",
                       "-" if r["median_scans_to_converge"] is None
                       else f"{r['median_scans_to_converge']:.0f}",
@@ -299,6 +309,8 @@ def main() -> None:
     ap.add_argument("--tail", type=int, default=10,
                     help="scans that must all be within tolerance at the end of a run")
     ap.add_argument("--quick", action="store_true", help="seeds 1 2, N = 10k and 30k")
+    ap.add_argument("--preset", default="default",
+                    help="named localize settings (mcl3d/localization/presets.py)")
     ap.add_argument("--report", type=Path, nargs="+",
                     help="only print the table of these JSON files' runs (merged)")
     ap.add_argument("--kidnap", type=int, nargs="+", metavar="SEED",
@@ -342,10 +354,12 @@ def main() -> None:
             for seed in args.seeds:
                 log, tsdf, gt = make_data(args.work, world, seed, args.duration)
                 cache.current = tsdf
-                out = args.work / f"{world}_{seed}_{n}"
+                suffix = "" if args.preset == "default" else f"_{args.preset}"
+                out = args.work / f"{world}_{seed}_{n}{suffix}"
                 timing = localize_once(log, tsdf, out, n, seed, args)
                 d, a = scan_errors(out, gt)
-                run = {"world": world, "seed": seed, "particles": n, "scans": len(d),
+                run = {"preset": args.preset, "world": world, "seed": seed, "particles": n,
+                       "scans": len(d),
                        **timing, **evaluate_run(d, a, args.tail),
                        "rmse_after_filter_converged_m": tracking_rmse(
                            d, timing["filter_converged_at_scan"])}

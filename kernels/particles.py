@@ -63,7 +63,7 @@ def init_gaussian(pos: ti.template(), quat: ti.template(), log_w: ti.template(),
 def init_cells(pos: ti.template(), quat: ti.template(), log_w: ti.template(), n: ti.i32,
                cells: ti.types.ndarray(dtype=vec3, ndim=1), n_cells: ti.i32, cell_m: ti.f32,
                gravity: ti.i32, roll: ti.f32, pitch: ti.f32, std_rp: ti.f32,
-               fraction: ti.f32, seed: ti.u32, step: ti.u32):
+               stratified: ti.i32, fraction: ti.f32, seed: ti.u32, step: ti.u32):
     """Uniform positions over equal cubic cells (`cells` = their lower corners, edge cell_m).
 
     gravity = 1: roll/pitch from the IMU's gravity (+ N(0, std_rp)), yaw uniform;
@@ -72,7 +72,8 @@ def init_cells(pos: ti.template(), quat: ti.template(), log_w: ti.template(), n:
     of the cell list, and its yaw is the i-th point of a golden-ratio sequence, so every part
     of the free space gets its share of particles and neighbouring ones look in different
     directions (independent draws leave random holes, and a hole on the true pose is a
-    failed global localization).
+    failed global localization). stratified = 0: independent draws (a uniform cell, and
+    with gravity a uniform yaw), as the paper samples.
     """
     per_particle = ti.cast(n_cells, ti.f32) / ti.cast(n, ti.f32)
     yaw_offset = counter_hash(seed, step, ti.u32(0), ti.u32(S_U4))
@@ -80,6 +81,8 @@ def init_cells(pos: ti.template(), quat: ti.template(), log_w: ti.template(), n:
         if _chosen(seed, step, i, fraction):
             u0 = uniform(seed, step, ti.u32(i), ti.u32(S_U0))
             k = ti.min(ti.cast((ti.cast(i, ti.f32) + u0) * per_particle, ti.i32), n_cells - 1)
+            if not stratified:
+                k = ti.min(ti.cast(u0 * ti.cast(n_cells, ti.f32), ti.i32), n_cells - 1)
             off = vec3(uniform(seed, step, ti.u32(i), ti.u32(S_U1)),
                        uniform(seed, step, ti.u32(i), ti.u32(S_U2)),
                        uniform(seed, step, ti.u32(i), ti.u32(S_U3)))
@@ -87,8 +90,10 @@ def init_cells(pos: ti.template(), quat: ti.template(), log_w: ti.template(), n:
             q = vec4(0.0, 0.0, 0.0, 1.0)
             if gravity:
                 g = normal2(seed, step, ti.u32(i), ti.u32(S_N0))
-                q = _rpy_quat(roll + std_rp * g[0], pitch + std_rp * g[1],
-                              _TWO_PI * _golden(i, yaw_offset))
+                yaw_u = _golden(i, yaw_offset)
+                if not stratified:
+                    yaw_u = uniform(seed, step, ti.u32(i), ti.u32(S_U4))
+                q = _rpy_quat(roll + std_rp * g[0], pitch + std_rp * g[1], _TWO_PI * yaw_u)
             else:
                 u1 = uniform(seed, step, ti.u32(i), ti.u32(S_U4))
                 u2 = uniform(seed, step, ti.u32(i), ti.u32(S_U5))

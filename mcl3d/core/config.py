@@ -46,12 +46,20 @@ def build(cls: type[S], values: dict[str, Any], source: str = "config") -> S:
         raise ConfigError(_describe(exc, source)) from None
 
 
-def load(cls: type[S], path: Path | None, overrides: dict[str, Any] | None = None) -> S:
-    """Defaults, then the YAML/TOML file at `path`, then `overrides` (dotted keys allowed)."""
+def load(cls: type[S], path: Path | None, overrides: dict[str, Any] | None = None,
+         preset: dict[str, Any] | None = None) -> S:
+    """Defaults, then a `preset` (a named set of dotted keys), then the YAML/TOML file at
+    `path`, then `overrides` (dotted keys allowed; None values are skipped)."""
     values: dict[str, Any] = {}
+    _set_dotted(values, preset or {})
     if path is not None:
-        values = _read_file(Path(path))
-    for key, value in (overrides or {}).items():
+        _merge(values, _read_file(Path(path)))
+    _set_dotted(values, overrides or {})
+    return build(cls, values, str(path) if path else "options")
+
+
+def _set_dotted(values: dict[str, Any], dotted: dict[str, Any]) -> None:
+    for key, value in dotted.items():
         if value is None:
             continue
         node = values
@@ -59,7 +67,15 @@ def load(cls: type[S], path: Path | None, overrides: dict[str, Any] | None = Non
         for part in parents:
             node = node.setdefault(part, {})
         node[leaf] = value
-    return build(cls, values, str(path) if path else "options")
+
+
+def _merge(values: dict[str, Any], update: dict[str, Any]) -> None:
+    """Nested update: a file's section keeps the preset's keys it does not name."""
+    for key, value in update.items():
+        if isinstance(value, dict) and isinstance(values.get(key), dict):
+            _merge(values[key], value)
+        else:
+            values[key] = value
 
 
 def _read_file(path: Path) -> dict[str, Any]:

@@ -7,7 +7,7 @@ is the mean of the heaviest cluster only; the other clusters are reported as hyp
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.stats import norm
@@ -222,3 +222,15 @@ def estimate_pose(cloud: WeightedParticles, cfg: EstimateConfig, rng: np.random.
         dominant=h0.weight >= cfg.converged_weight and compact,
         match_ratio=float(w @ cloud.match), mean_log_likelihood=float(w @ cloud.mean_ll),
         sample_positions=pos[idx].astype(np.float32))
+
+
+def with_mean_of_all(estimate: PoseEstimate, cloud: WeightedParticles) -> PoseEstimate:
+    """`estimate` with the pose and covariance of the weighted mean of every particle
+    (`estimate.mean: all`, the paper's estimate) instead of the heaviest cluster's; the
+    clusters, and so the convergence test, stay as they were."""
+    w = np.asarray(cloud.weights, dtype=np.float64)
+    keep = w > 0
+    quats = cloud.quats_xyzw[keep] / np.linalg.norm(cloud.quats_xyzw[keep], axis=1,
+                                                     keepdims=True)
+    mean = _hypothesis(cloud.positions[keep], quats, w[keep], w.sum())
+    return replace(estimate, T_map_lidar=mean.T_map_lidar, covariance=mean.covariance)

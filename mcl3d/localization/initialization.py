@@ -35,8 +35,8 @@ class InitConfig(Section):
     height_band_m: list[float] | str | None = Field(
         "auto", description="global: lidar height above the surface below [lo, hi] m; "
                             "'auto': the floor seen in the first scan, levelled by the IMU's "
-                            "gravity, +- auto_band_m (else the default band); null samples all "
-                            "free space")
+                            "gravity, +- auto_band_m (else the default band); null or 'none' "
+                            "samples all free space")
     default_band_m: list[float] = Field([0.2, 2.5], description="band when auto finds no floor")
     covered: bool | str = Field(
         "auto", description="keep only cells with a surface somewhere above them (inside a "
@@ -49,6 +49,14 @@ class InitConfig(Section):
     gravity_std_deg: float = Field(1.7188733853924696, ge=0.0,
                                    description="roll/pitch noise when taken from the IMU, deg")
     imu_samples: int = Field(20, ge=1, description="accelerometer samples averaged for gravity")
+    uniform_rotation: bool = Field(
+        False, description="global: rotations uniform on SO(3) even when gravity is known "
+                           "(the paper's 6-DoF uniform initialization); false: roll/pitch from "
+                           "the IMU's gravity (or the last converged estimate) when known")
+    stratified: bool = Field(
+        True, description="global: particle i takes a cell of the i-th of N equal runs of the "
+                          "candidates and a golden-ratio yaw (no holes); false: independent "
+                          "uniform draws, as the paper")
 
     @property
     def pose_m_rad(self) -> list[float] | None:
@@ -151,6 +159,8 @@ def free_cells(tsdf, cfg: InitConfig) -> FreeCells:
     grid = cell_states(tsdf, factor)
     ok = grid == FREE_CELL
     band = cfg.default_band_m if cfg.height_band_m == "auto" else cfg.height_band_m
+    if band == "none":
+        band = None
     if band is not None:
         if isinstance(band, str) or len(band) != 2:
             raise ConfigError(f"height band {band!r}: give [lo, hi] in m, 'auto' or null")

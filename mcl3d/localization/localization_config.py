@@ -8,6 +8,7 @@ floats whose conversion gives the radian values the filter was tuned with, exact
 from __future__ import annotations
 
 import math
+from typing import Literal
 
 from pydantic import Field
 
@@ -55,7 +56,9 @@ class MotionNoiseConfig(Section):
 
 class ResampleConfig(Section):
     ess_threshold: float = Field(0.5, gt=0.0, le=1.0,
-                                 description="resample when ESS < threshold * N")
+                                 description="resample when ESS < threshold * N (1: every "
+                                             "scan, as the paper; equal weights, the only "
+                                             "case skipped, resample to the same set)")
     anneal_min_ess: float = Field(
         0.05, ge=0.0, lt=1.0, description="until the first convergence, temper each scan "
                                           "further so that ESS >= this * N (0: off)")
@@ -71,6 +74,15 @@ class ResampleConfig(Section):
                              "accurate model keep every cluster found, with equal weights "
                              "after each resampling, so that a mode the coarse model left "
                              "misaligned aligns before it is judged")
+    place_min_particles: int = Field(
+        32, ge=0, description="global search: every place (cell of place_cell_m and "
+                              "place_yaw_deg) whose best lineage is within place_margin_nats "
+                              "of the best keeps at least this many particles at resampling, "
+                              "so a look-alike place dies only when the scans rule it out "
+                              "(0: off)")
+    place_margin_nats: float = Field(10.0, gt=0.0, description="... the evidence margin")
+    place_cell_m: float = Field(1.0, gt=0.0, description="... the place cell in x, y, z")
+    place_yaw_deg: float = Field(30.0, gt=0.0, le=360.0, description="... and in yaw")
     kld: bool = Field(False, description="adapt the particle count with KLD-sampling")
     min_particles: int = Field(2000, ge=1)
     kld_epsilon: float = Field(0.05, gt=0.0, description="KL error bound")
@@ -102,6 +114,16 @@ class EstimateConfig(Section):
                                  "since the (re-)initialization (or turned as below): scans "
                                  "from one place are not independent evidence")
     converge_min_rotation_deg: float = Field(57.29577951308232, ge=0.0)
+    rival_margin_nats: float = Field(
+        4.6, ge=0.0, description="not converged while a particle away from the dominant "
+                                 "cluster has a lineage whose evidence since the "
+                                 "initialization is within this many nats of the dominant's "
+                                 "best (a look-alike place; 4.6 = a likelihood ratio of 1%; "
+                                 "0: off)")
+    mean: Literal["cluster", "all"] = Field(
+        "cluster", description="the reported pose: cluster = the weighted mean of the heaviest "
+                               "cluster; all = the weighted mean of every particle, as the "
+                               "paper (across modes while the filter is multi-modal)")
 
     @property
     def cluster_angle_rad(self) -> float:

@@ -52,6 +52,7 @@ class LocalizeSummary:
     ate_after_convergence: GroundTruthErrors | None = None
     ate_rmse_m_evo: float | None = None  # ATE as evo computes it, a cross-check
     faults: LogFaults = field(default_factory=LogFaults)  # the log's messages dropped
+    preset: str = "default"  # the --preset the settings started from
 
     def to_json(self) -> dict:
         """summary.json's content: the fields, without the ground-truth ones when absent."""

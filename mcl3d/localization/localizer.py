@@ -18,12 +18,19 @@ from mcl3d.core import geometry
 from mcl3d.core.errors import InputError
 from mcl3d.kernels import motion
 from mcl3d.kernels import particles as kp
-from mcl3d.localization.estimate import PoseEstimate, WeightedParticles, estimate_pose
+from mcl3d.localization.estimate import (
+    PoseEstimate,
+    WeightedParticles,
+    estimate_pose,
+    with_mean_of_all,
+)
+from mcl3d.localization.evidence import PlaceEvidence, place_labels, rival_gap
 from mcl3d.localization.initialization import FreeCells, free_cells
 from mcl3d.localization.localization_config import LocalizerConfig
 from mcl3d.localization.particle_set import ParticleSet
 from mcl3d.localization.random_streams import (
     ESTIMATE_SAMPLE_STREAM,
+    EVIDENCE_SAMPLE_STREAM,
     INIT_GLOBAL_COUNTER,
     INIT_POSE_COUNTER,
     KLD_SAMPLE_STREAM,
@@ -72,8 +79,11 @@ class Localizer:
         self.step_index = 0
         self.ever_converged = False
         self.last_sample_positions = np.zeros((0, 3), np.float32)  # for visualization
+        self.last_rival_gap = -np.inf  # nats, see _rival_explains_scans
         self.search = GlobalSearch(config)
         self.recovery = Recovery(config.recovery)
+        self.evidence = PlaceEvidence()
+        self._places: np.ndarray | None = None  # place label per particle, this update
         self.weigher = ScanWeigher(tsdf, config.sensor, config.particles)
         self._free: FreeCells | None = None
         self._init_step = 0  # step_index of the last (re-)initialization
@@ -96,13 +106,16 @@ class Localizer:
         cells = self.free_space()
         if fraction >= 1.0:
             self._start_search()
+        self.evidence.reset(self.particles.n)
         p = self.particles
-        roll_pitch = self.imu_roll_pitch or self._upright
+        roll_pitch = None if self.cfg.init.uniform_rotation else (
+            self.imu_roll_pitch or self._upright)
         gravity = roll_pitch is not None
         roll, pitch = roll_pitch if gravity else (0.0, 0.0)
         kp.init_cells(p.pos, p.quat, p.log_w, p.n, cells.corners_m, len(cells.corners_m),
                       cells.cell_m, int(gravity), roll, pitch, self.cfg.init.gravity_std_rad,
-                      fraction, self.seed, kernel_counter(self.step_index, INIT_GLOBAL_COUNTER))
+                      int(self.cfg.init.stratified), fraction, self.seed,
+                      kernel_counter(self.step_index, INIT_GLOBAL_COUNTER))
 
     def init_pose(self, T_map_lidar: np.ndarray, std: list[float], fraction: float = 1.0
                   ) -> None:
@@ -111,6 +124,7 @@ class Localizer:
         self._check_in_map(T[:3, 3])
         t, q = geometry.tq_from_se3(T)
         p = self.particles
+        self.evidence.reset(p.n)
         kp.init_gaussian(p.pos, p.quat, p.log_w, p.n, ti.math.vec3(*t), ti.math.vec4(*q),
                          ti.math.vec3(*std[:3]), ti.math.vec3(*std[3:6]), fraction,
                          self.seed, kernel_counter(self.step_index, INIT_POSE_COUNTER))
@@ -120,6 +134,7 @@ class Localizer:
         """A given particle set (tests, restarts). search=True: it is the state of a global
         search (convergence only after motion, modes kept), without a coarse phase."""
         self.particles.set_host(positions, quats_xyzw)
+        self.evidence.reset(self.particles.n)
         if search:
             self._start_search(scans_done=self.cfg.sensor.coarse_scans)
 
@@ -167,6 +182,7 @@ class Localizer:
         weights = compute_weights(self.particles)
         timer.lap("weights")
         cloud = self.particles.weighted_host(weights.total)
+        self._gather_evidence(cloud, len(pts), coarse_sigma)
         estimate, state = self._estimate(cloud)
         timer.lap("estimate")
         state, reseed = self._check_loss(estimate, state)
@@ -183,7 +199,9 @@ class Localizer:
             covariance=estimate.covariance, state=state, hypotheses=estimate.hypotheses,
             ess=float(weights.ess), n_particles=n, match_ratio=estimate.match_ratio,
             mean_log_likelihood=estimate.mean_log_likelihood, n_points=len(pts),
-            resampled=resampled, reseeded=reseed, timings_ms=timer.ms)
+            resampled=resampled, reseeded=reseed, places=self.search.live_places,
+            best_match_ratio=float(cloud.match.max()),
+            timings_ms=timer.ms)
 
     def motion_std(self, T_prev_curr: np.ndarray, extra_rot: float = 0.0,
                    extra_trans: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
@@ -230,7 +248,22 @@ class Localizer:
         self.search.count_scan()
         min_ess = self.cfg.resample.anneal_min_ess
         if min_ess > 0 and not self.ever_converged:
-            anneal(self.particles, s.tempering(len(pts)) * len(pts), min_ess)
+            anneal(self.particles, s.increment_scale(len(pts)), min_ess)
+
+    def _gather_evidence(self, cloud: WeightedParticles, n_points: int,
+                         coarse_sigma: float | None) -> None:
+        """Each place's evidence, while searching (see `evidence`); the coarse model is a
+        search heuristic, not evidence."""
+        r = self.cfg.resample
+        self._places = None
+        if self.ever_converged or coarse_sigma is not None:
+            return
+        self._places = place_labels(cloud.positions, cloud.quats_xyzw, r.place_cell_m,
+                                    round(360.0 / r.place_yaw_deg))
+        self.evidence.add(self.cfg.sensor.increment_scale(n_points) * cloud.mean_ll,
+                          self._places, max(r.place_min_particles, 1),
+                          host_rng(self.seed, self.step_index, EVIDENCE_SAMPLE_STREAM),
+                          r.place_margin_nats)
 
     def _estimate(self, cloud: WeightedParticles) -> tuple[PoseEstimate, FilterState]:
         """The dominant cluster and the filter's state (a global search converges only
@@ -238,18 +271,35 @@ class Localizer:
         estimate = estimate_pose(cloud, self.cfg.estimate,
                                  host_rng(self.seed, self.step_index, ESTIMATE_SAMPLE_STREAM))
         self.last_sample_positions = estimate.sample_positions
+        if self.cfg.estimate.mean == "all":
+            estimate = with_mean_of_all(estimate, cloud)
         self.search.update_modes(cloud, estimate.clusters,
-                                 host_rng(self.seed, self.step_index, MODE_SAMPLE_STREAM))
-        converged = estimate.dominant
+                                 host_rng(self.seed, self.step_index, MODE_SAMPLE_STREAM),
+                                 None if self._places is None else (self._places,
+                                                                    self.evidence))
+        rival = self._rival_explains_scans(cloud, estimate)
+        converged = estimate.dominant and not rival
         if self.search.active:
             converged = self.search.converged(converged)
         if converged:
             self.ever_converged = True
             self.search.active = False
             return estimate, FilterState.CONVERGED
-        if len(estimate.hypotheses) >= 2 or self.ever_converged:
+        if len(estimate.hypotheses) >= 2 or self.ever_converged or rival:
             return estimate, FilterState.AMBIGUOUS
         return estimate, FilterState.INITIALIZING
+
+    def _rival_explains_scans(self, cloud: WeightedParticles, estimate: PoseEstimate) -> bool:
+        """Whether a particle away from the dominant cluster has a lineage that explains
+        the scans within `rival_margin_nats` of the dominant's best (see `evidence`)."""
+        e = self.cfg.estimate
+        if e.rival_margin_nats <= 0 or self._places is None:
+            return False
+        gap = rival_gap(cloud.positions, cloud.quats_xyzw, self.evidence.log_l,
+                        estimate.T_map_lidar, 2 * e.cluster_radius_m, 2 * e.cluster_angle_rad)
+        self.last_rival_gap = gap
+        live = max(self.search.live_places, 2)
+        return gap > -max(e.rival_margin_nats, self.evidence.noise_margin(live))
 
     def _check_loss(self, estimate: PoseEstimate, state: FilterState
                     ) -> tuple[FilterState, Reseed]:
@@ -260,7 +310,8 @@ class Localizer:
         lost = self.recovery.is_lost(estimate.match_ratio, estimate.mean_log_likelihood,
                                      state == FilterState.CONVERGED, active)
         reseed = self.recovery.action(lost)
-        if lost:
+        if lost or (state == FilterState.CONVERGED and self.recovery.scan_disagrees(
+                estimate.match_ratio, estimate.mean_log_likelihood)):
             state = FilterState.LOST
         if state == FilterState.CONVERGED:
             roll, pitch, _ = geometry.rot_to_rpy(estimate.T_map_lidar[:3, :3])
@@ -279,6 +330,7 @@ class Localizer:
         u0 = float(host_rng(self.seed, counter, RESAMPLE_OFFSET_STREAM).random())
         resample(self.particles, n_out, weights, u0, factors, cloud,
                  keep_posterior=not self.search.exploring)
+        self.evidence.inherit(self.particles.parent.to_numpy()[:n_out])
 
     def _recover(self, how: Reseed, T_estimate: np.ndarray) -> None:
         """Re-seed: around the estimate (clipped into the map), or over the free space."""

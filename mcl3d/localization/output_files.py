@@ -21,7 +21,7 @@ from mcl3d.localization.state import STAGES, LocalizationResult
 OUTPUT_FILES = {"tum": "trajectory.tum", "kitti": "trajectory.kitti", "csv": "scans.csv",
                 "config": "config.yaml", "summary": "summary.json", "picture": LOCALIZE_PICTURE}
 CSV_HEADER = ("stamp_s,x,y,z,qx,qy,qz,qw,var_rx,var_ry,var_rz,var_x,var_y,var_z,ess,"
-              "n_particles,state,hypotheses,match_ratio,mean_log_likelihood,n_points,resampled,"
+              "n_particles,state,hypotheses,places,match_ratio,mean_log_likelihood,n_points,resampled,"
               "reseeded,motion," + ",".join(f"ms_{s}" for s in STAGES) + ",ms_total")
 
 
@@ -44,7 +44,8 @@ def _csv_row(r: LocalizationResult, motion: str) -> str:
     ms = [r.timings_ms[s] for s in STAGES]
     row = [f"{r.stamp_s:.9f}", *(f"{v:.6f}" for v in t), *(f"{v:.7f}" for v in q),
            *(f"{v:.3e}" for v in np.diag(r.covariance)), f"{r.ess:.1f}",
-           str(r.n_particles), r.state.value, str(len(r.hypotheses)), f"{r.match_ratio:.4f}",
+           str(r.n_particles), r.state.value, str(len(r.hypotheses)), str(r.places),
+           f"{r.match_ratio:.4f}",
            f"{r.mean_log_likelihood:.4f}", str(r.n_points), str(int(r.resampled)),
            r.reseeded or "-", motion, *(f"{v:.2f}" for v in ms), f"{sum(ms):.2f}"]
     return ",".join(row)

@@ -87,6 +87,7 @@ class LocalizeRequest:
     force: bool = False  # overwrite existing outputs
     result_mcap: Path | None = None  # also write pose, particles and aligned scan here
     backend: str = "cpu"
+    preset: str = "default"  # the named preset the config started from (recorded only)
 
 
 @dataclass
@@ -131,6 +132,7 @@ def _run(req: LocalizeRequest, on_progress: ProgressCallback | None) -> Localize
         raise InputError(f"{req.log}: no scan could be localized ({out.skipped_scans} scans "
                          f"had fewer than {MIN_SCAN_POINTS} points in the range gate)")
     out.summary = _summary(out, req.config, info)
+    out.summary.preset = req.preset
     write_outputs(paths, out.results, out.motion_kinds, out.summary, req.config, out.stamps_ns,
                   map_points, None if out.gt is None else Trajectory.from_ns(*out.gt),
                   tsdf.voxel_size_m)
@@ -264,7 +266,7 @@ class _ScanLoop:
 
     def _check_overlap(self, result: LocalizationResult) -> None:
         """A global search that matched nothing after a while is in the wrong map."""
-        self.best_match = max(self.best_match, result.match_ratio)
+        self.best_match = max(self.best_match, result.best_match_ratio)
         n = len(self.out.results)
         if (self.cfg.localizer.init.mode == "global" and n >= NO_OVERLAP_SCANS
                 and self.best_match < NO_OVERLAP_MATCH):

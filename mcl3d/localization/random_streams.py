@@ -15,6 +15,7 @@ INIT_POSE_COUNTER = 2  # particles drawn around a pose
 ESTIMATE_SAMPLE_STREAM = 3  # the weighted subsample that the estimate clusters
 MODE_SAMPLE_STREAM = 4  # the uniform subsample that finds populous modes
 KLD_SAMPLE_STREAM = 5  # the weighted subsample that counts KLD bins
+EVIDENCE_SAMPLE_STREAM = 6  # the particles of each place that judge a scan (evidence)
 RESAMPLE_OFFSET_STREAM = 7  # the offset of systematic resampling
 
 

@@ -57,6 +57,16 @@ class Recovery:
         self._lost_run = self._lost_run + 1 if lost else 0
         return lost
 
+    def scan_disagrees(self, match_ratio: float, mean_ll: float) -> bool:
+        """This scan alone is as far below the healthy level as the fast averages must fall
+        to be lost: a `converged` claim is withheld for it (a kidnap onto a look-alike place
+        shows in the first scan; re-seeding still waits for the averages)."""
+        if self._slow is None or not self._healthy:
+            return False
+        r = self.cfg
+        return bool(match_ratio < r.drop_ratio * self._slow[0]
+                    or mean_ll < self._slow[1] - r.ll_drop)
+
     def action(self, lost: bool) -> Reseed:
         """The re-seeding to do now: "" (none yet), "expansion" or "global"."""
         r = self.cfg

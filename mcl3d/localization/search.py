@@ -22,6 +22,7 @@ from mcl3d.localization.estimate import (
     label_particles,
     mode_floor,
 )
+from mcl3d.localization.evidence import PlaceEvidence, place_floor
 from mcl3d.localization.localization_config import LocalizerConfig
 from mcl3d.localization.particle_set import ParticleSet
 
@@ -41,6 +42,7 @@ class GlobalSearch:
         self.exploring = False  # this update is a coarse or grace scan (see update_modes)
         self.mode_factors: np.ndarray | None = None  # mode-preserving resampling factors
         self.rivals = 0  # protected clusters besides the dominant one
+        self.live_places = 0  # places whose evidence the scans have not ruled out
 
     def start(self, scans_done: int = 0) -> None:
         """A fresh search; `scans_done` = coarse_scans skips the coarse phase."""
@@ -72,16 +74,19 @@ class GlobalSearch:
             self.scans += 1
 
     def update_modes(self, cloud: WeightedParticles, hyps: list[Hypothesis],
-                     rng: np.random.Generator) -> None:
+                     rng: np.random.Generator,
+                     evidence: tuple[np.ndarray, PlaceEvidence] | None = None) -> None:
         """Mode-preserving resampling factors (`mode_floor`): the clusters are those of the
         weighted sample plus those of a uniform sample of the particles (a mode that holds
         many particles but little weight), merged when closer than two cluster radii. During
         the coarse phase the model is a deliberately blurred search heuristic, not evidence
         to accumulate: the heaviest clusters keep their floor whatever their weight, and the
         copies start with equal weights (tempering), so the accurate model decides between
-        the modes from the end of the coarse phase on."""
+        the modes from the end of the coarse phase on. With `evidence` (each particle's place
+        and evidence), every place the scans have not ruled out also keeps a floor of
+        particles (`evidence.place_floor`), however many look-alike places there are."""
         e, r = self.cfg.estimate, self.cfg.resample
-        self.mode_factors, self.rivals = None, 0
+        self.mode_factors, self.rivals, self.live_places = None, 0, 0
         if not self.active or r.mode_share <= 0:
             return
         pos, quat, w = cloud.positions, cloud.quats_xyzw, cloud.weights
@@ -103,6 +108,14 @@ class GlobalSearch:
         self.rivals = floor.rivals
         if floor.rivals:
             self.mode_factors = floor.factors
+        if evidence is not None and r.place_min_particles > 0:
+            places, ev = evidence
+            margin = max(r.place_margin_nats, ev.noise_margin(int(places.max()) + 1))
+            factors, self.live_places = place_floor(places, w, ev.log_l, margin,
+                                                    r.place_min_particles)
+            if self.live_places >= 2:
+                self.mode_factors = factors if self.mode_factors is None else np.maximum(
+                    self.mode_factors, factors)
 
     def converged(self, dominant: bool) -> bool:
         """Whether one cluster dominated long enough, after the coarse phase, with no rival

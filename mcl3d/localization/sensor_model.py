@@ -9,6 +9,7 @@ explains the model and every parameter.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 from pydantic import Field, model_validator
@@ -59,6 +60,12 @@ class SensorModelConfig(Section):
     cache_block: bool | str = Field(
         "auto", description="kernel keeps the last coarse-cell lookup (auto: on GPUs only, "
                             "where it saves memory reads; on cpu it measured slower)")
+    model: Literal["tsdf", "paper"] = Field(
+        "tsdf", description="tsdf: the model of docs/sensor-model.md (free/unknown cases, "
+                            "tempered log-likelihoods); paper: Eisoldt et al. eq. 3, a "
+                            "precomputed Gaussian of the TSDF value interpolated trilinearly, "
+                            "summed over the points with a z_rand / max_range_m floor, "
+                            "untempered (effective_points unused)")
 
     @model_validator(mode="after")
     def _check(self) -> SensorModelConfig:
@@ -76,6 +83,11 @@ class SensorModelConfig(Section):
 
     def tempering(self, n_points: int) -> float:
         return self.effective_points / max(n_points, 1)
+
+    def increment_scale(self, n_points: int) -> float:
+        """A scan's log-weight increment per unit of the kernel's ll_mean, up to a constant
+        per scan (what annealing rescales)."""
+        return 1.0 if self.model == "paper" else self.tempering(n_points) * n_points
 
 
 TABLE_SIZE = 1024  # mcl3d.kernels.likelihood.TABLE_SIZE
@@ -216,6 +228,39 @@ def scan_log_likelihood_numpy(host: NumpyTsdf, positions: np.ndarray, quats_xyzw
         out_match[s:s + chunk] = (_observed(d, w, b, host.truncation_m)
                                   & (np.abs(d) < cfg.match_dist_m)).mean(1)
     return out_ll * cfg.tempering(m), out_match, out_ll / max(m, 1)
+
+
+# ----------------------------------------------------------------- the paper's model
+def paper_value(d: np.ndarray, cfg: SensorModelConfig, truncation_m: float,
+                sigma_m: float) -> np.ndarray:
+    """Eq. 3 of the paper times z_hit, d clamped to +-truncation: what the map precomputes
+    per voxel for `sensor.model: paper` (mcl3d.kernels.paper_likelihood)."""
+    d = np.clip(np.asarray(d, np.float64), -truncation_m, truncation_m)
+    return cfg.z_hit * np.exp(-0.5 * (d / sigma_m) ** 2) / np.sqrt(2 * np.pi * sigma_m**2)
+
+
+def paper_log_likelihood_numpy(host: NumpyTsdf, positions: np.ndarray, quats_xyzw: np.ndarray,
+                               points: np.ndarray, cfg: SensorModelConfig, sigma_m: float
+                               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """NumPy twin of paper_scan_log_likelihood: (log of the summed per-point terms, match
+    ratio, log of their mean) per particle; the values of the eight voxel centres around a
+    point are interpolated trilinearly (voxels outside the allocated blocks read d = +trunc)."""
+    trunc = host.truncation_m
+    R = quat_to_rot(quats_xyzw.astype(np.float64))
+    p = np.einsum("nij,mj->nmi", R, points.astype(np.float64)) + positions[:, None, :]
+    u = (p - host.origin_m) / host.voxel_size_m - 0.5
+    base = np.floor(u)
+    f = u - base
+    score = np.zeros(p.shape[:2])
+    for corner in np.ndindex(2, 2, 2):
+        c = np.asarray(corner)
+        centre = host.origin_m + (base + c + 0.5) * host.voxel_size_m
+        d, _, _ = host.lookup(centre.astype(np.float32))
+        weight = np.prod(np.where(c == 1, f, 1.0 - f), axis=-1)
+        score += weight * paper_value(d, cfg, trunc, sigma_m)
+    total = (score + cfg.z_rand / cfg.max_range_m).sum(axis=1)
+    hit = score >= paper_value(cfg.match_dist_m, cfg, trunc, sigma_m)
+    return np.log(total), hit.mean(axis=1), np.log(total / max(len(points), 1))
 
 
 # --------------------------------------------------------------------- coarse search model

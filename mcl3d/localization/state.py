@@ -45,6 +45,8 @@ class LocalizationResult:
     n_points: int
     resampled: bool
     reseeded: Reseed  # "" (none), "expansion" or "global"
+    places: int = 0  # look-alike places the scans have not ruled out (global search only)
+    best_match_ratio: float = 0.0  # the best particle's fraction of scan points on a surface
     timings_ms: dict[str, float] = field(default_factory=dict)  # per stage of STAGES
 
 

@@ -4,6 +4,8 @@ The map is read-only during localization, so the model is evaluated once per vox
 code grid (1 KiB per map block, a quarter of an f32 map); an update looks codes up in a
 small log-likelihood table that depends on the sigma in use. A global search starts on a
 coarse distance field of the map instead (built on the first global initialization).
+With `sensor.model: paper` the grid holds the paper's eq. 3 per voxel instead (2 KiB per
+block, `kernels/paper_likelihood`), rebuilt when the sigma changes.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import taichi as ti
 
 from mcl3d.core import runtime
 from mcl3d.kernels import likelihood as kl
+from mcl3d.kernels import paper_likelihood as kpl
 from mcl3d.localization import sensor_model
 from mcl3d.localization.particle_set import ParticleSet
 from mcl3d.localization.sensor_model import (
@@ -21,6 +24,7 @@ from mcl3d.localization.sensor_model import (
     coarse_match_codes,
     coarse_table,
     code_table,
+    paper_value,
     spatial_order,
 )
 
@@ -47,11 +51,15 @@ class ScanWeigher:
         self._table = ti.field(ti.f32, shape=kl.N_CODES)
         self._coarse_table = ti.field(ti.f32, shape=kl.COARSE_BINS + 2)
         self._table_sigma: float | None = None
-        self._codes = ti.field(ti.i32, shape=(tsdf.capacity + 2, kl.BLOCK, kl.BLOCK,
-                                              kl.WORDS_Z))
         self._slots = ti.field(ti.i32, shape=tsdf.coarse_dims)
-        kl.build_codes(tsdf, self._codes, tsdf.n_blocks, cfg.match_dist_m)
         kl.build_slots(tsdf, self._slots)
+        if cfg.model == "paper":  # eq. 3 precomputed per voxel (set_sigma fills it)
+            self._values = ti.field(ti.f32, shape=(tsdf.capacity + 2, kl.BLOCK, kl.BLOCK,
+                                                   kl.BLOCK))
+        else:
+            self._codes = ti.field(ti.i32, shape=(tsdf.capacity + 2, kl.BLOCK, kl.BLOCK,
+                                                  kl.WORDS_Z))
+            kl.build_codes(tsdf, self._codes, tsdf.n_blocks, cfg.match_dist_m)
         self._coarse = None  # the coarse search field on the device, once built
         self._coarse_host: sensor_model.CoarseField | None = None
 
@@ -60,7 +68,11 @@ class ScanWeigher:
         scale with sigma)."""
         if sigma_m == self._table_sigma:
             return False
-        self._table.from_numpy(code_table(self.cfg, self.tsdf.truncation_m, sigma_m))
+        if self.cfg.model == "paper":
+            kpl.build_paper_values(self.tsdf, self._values, self.tsdf.n_blocks, sigma_m,
+                                   self.cfg.z_hit)
+        else:
+            self._table.from_numpy(code_table(self.cfg, self.tsdf.truncation_m, sigma_m))
         self._table_sigma = sigma_m
         return True
 
@@ -91,10 +103,21 @@ class ScanWeigher:
     def scan_likelihood(self, p: ParticleSet, n_points: int, cache_block: bool) -> None:
         """Adds the tempered log-likelihood of the uploaded scan to every log-weight."""
         self._sort_by_pose_cell(p, self.tsdf.voxel_size_m)
+        if self.cfg.model == "paper":
+            self._paper_likelihood(p, n_points)
+            return
         kl.scan_log_likelihood(self.tsdf, self._codes, self._slots, self._order, p.pos, p.quat,
                                p.n, self._points, n_points, self._table,
                                self.cfg.tempering(n_points), p.log_w, p.match, p.ll_mean,
                                cache_block)
+
+    def _paper_likelihood(self, p: ParticleSet, n_points: int) -> None:
+        cfg, trunc = self.cfg, self.tsdf.truncation_m
+        match_value = float(paper_value(cfg.match_dist_m, cfg, trunc, self._table_sigma))
+        kpl.paper_scan_log_likelihood(self.tsdf, self._values, self._slots, self._order, p.pos,
+                                      p.quat, p.n, self._points, n_points,
+                                      cfg.z_rand / cfg.max_range_m, match_value, p.log_w, p.match,
+                                      p.ll_mean)
 
     def coarse_likelihood(self, p: ParticleSet, n_points: int, sigma_m: float) -> None:
         """Like scan_likelihood, with the coarse search model at `sigma_m`."""

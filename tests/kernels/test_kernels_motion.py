@@ -101,7 +101,7 @@ def test_init_cells_uniform_and_gravity(ti_runtime):
     n = 40_000
     pos, quat, log_w = fields(n)
     cells = np.array([[0, 0, 0], [2, 0, 0], [0, 4, 1]], np.float32)
-    init_cells(pos, quat, log_w, n, cells, len(cells), 0.5, 0, 0.0, 0.0, 0.0, 1.0, 5, 0)
+    init_cells(pos, quat, log_w, n, cells, len(cells), 0.5, 0, 0.0, 0.0, 0.0, 1, 1.0, 5, 0)
     p = pos.to_numpy()
     owner = np.argmin(np.linalg.norm((p[:, None, :] - (cells[None] + 0.25)), axis=2), axis=1)
     inside = np.all((p >= cells[owner]) & (p < cells[owner] + 0.5), axis=1)
@@ -115,7 +115,7 @@ def test_init_cells_uniform_and_gravity(ti_runtime):
     for t in (0.5, 1.5, 2.5):
         assert abs(np.mean(angle <= t) - cdf(t)) < 0.01
     # gravity mode: roll/pitch near the given ones, yaw uniform
-    init_cells(pos, quat, log_w, n, cells, len(cells), 0.5, 1, 0.1, -0.2, 0.01, 1.0, 5, 1)
+    init_cells(pos, quat, log_w, n, cells, len(cells), 0.5, 1, 0.1, -0.2, 0.01, 1, 1.0, 5, 1)
     rpy = geometry.rot_to_rpy(geometry.quat_to_rot(quat.to_numpy().astype(np.float64)))
     np.testing.assert_allclose(rpy[:, 0].mean(), 0.1, atol=2e-3)
     np.testing.assert_allclose(rpy[:, 1].mean(), -0.2, atol=2e-3)
@@ -135,7 +135,7 @@ def test_init_cells_is_stratified(ti_runtime):
                             ).astype(np.float32)
     for n in (1000, 4000, 250):
         pos, quat, log_w = fields(n)
-        init_cells(pos, quat, log_w, n, cells, n_cells, 1.0, 1, 0.0, 0.0, 0.0, 1.0, 5, 0)
+        init_cells(pos, quat, log_w, n, cells, n_cells, 1.0, 1, 0.0, 0.0, 0.0, 1, 1.0, 5, 0)
         cell = np.floor(pos.to_numpy()[:, 0]).astype(int)
         per_cell = np.bincount(cell, minlength=n_cells)
         if n >= n_cells:

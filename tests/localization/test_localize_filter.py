@@ -189,29 +189,32 @@ def test_a_light_true_mode_survives_until_the_evidence_comes(hall, ti_runtime, m
     assert results[-1].state == "converged"
 
 
-@pytest.mark.parametrize("grace_scans", [None, 0])
-def test_a_misaligned_true_mode_aligns_before_it_is_judged(hall, ti_runtime, grace_scans):
+@pytest.mark.parametrize("grace_scans, place_floor", [(None, True), (0, True), (0, False)])
+def test_a_misaligned_true_mode_aligns_before_it_is_judged(hall, ti_runtime, grace_scans,
+                                                           place_floor):
     """The arena failure after the coarse phase, in small: the search holds the truth with
     5 % of the particles, 0.45 m and 6 degrees off (where the coarse model left it), and
     the mirror pose with 95 %, well aligned. The crate is in view, so the truth is the
     better pose, but its misaligned particles score worse than the aligned mirror at first.
-    Judged at once (grace 0) it drops below the rival weight, loses its floor and dies; the
-    default grace keeps it while it aligns, and the filter ends on the truth (3 of 3 noise
-    seeds tried each way)."""
+    Judged at once (grace 0) by weight alone it drops below the rival weight, loses its
+    floor and dies; the default grace keeps it while it aligns, and so does the place floor
+    (a place dies only when its evidence is ruled out), and the filter ends on the truth."""
     tsdf, mesh = hall
     scanner = localize_world.Scanner(n_azimuth=120, seed=5, mesh=mesh)
     path = np.stack([geometry.se3(np.eye(3), [10.6 + 0.08 * k, 3.0, localize_world.LIDAR_Z_M])
                      for k in range(24)])  # the crate is in range from the start
     mirror = geometry.se3(geometry.rpy_to_rot(0, 0, np.pi), [16.0 - 10.6, 3.0, 0.8])
     resample = {} if grace_scans is None else {"mode_grace_scans": grace_scans}
+    if not place_floor:
+        resample["place_min_particles"] = 0
     results = search_two_modes(tsdf, scanner, path, mirror, 300, [0.4, 0.2, 0.0], 0.1,
                                [0.08, 0.08, 0.02], 0.03, resample, np.random.default_rng(1))
     d, a = errors(results[-1].T_map_lidar, path[-1])
-    assert results[-1].state == "converged"
-    if grace_scans == 0:
-        assert d > 5.0, "judged at once, the misaligned true mode should have died"
+    if not place_floor:
+        assert d > 5.0, "judged at once by weight, the misaligned true mode should have died"
     else:
         assert d < 0.2 and a < 3.0, (d, a)
+        assert results[-1].state == "converged"
 
 
 def test_a_global_reseed_without_imu_keeps_the_robot_upright(room, ti_runtime):

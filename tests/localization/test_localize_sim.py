@@ -159,6 +159,8 @@ def test_kidnapped_robot_recovers(office_kidnap, tmp_path):
     assert d[:jump].max() < 0.2 and a[:jump].max() < 3.0  # tracked before the kidnapping
     states = [r.state for r in out.results]
     assert "lost" in states[jump:jump + 5], states[jump:jump + 5]  # loss detected at once
+    wrong = [k for k in range(len(d)) if states[k] == "converged" and (d[k] > 1.0 or a[k] > 10)]
+    assert not wrong, f"converged far from the truth at scans {wrong} (jump at {jump})"
     assert any(r.reseeded for r in out.results[jump:])
     back = [k for k in range(jump, len(d)) if states[k] == "converged" and d[k] < 0.2]
     assert back, f"never converged back onto the truth; errors after the jump {d[jump:]}"
