@@ -10,7 +10,7 @@ same arguments give the same bytes.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -31,7 +31,14 @@ from mcl3d.sim.lidars import SENSORS, LidarConfig, make_lidar
 from mcl3d.sim.mesh import sample_surface, write_mesh_ply, write_points_ply
 from mcl3d.sim.raycast import WorldCaster
 from mcl3d.sim.scan import simulate_scan
-from mcl3d.sim.trajectories import TRAJECTORIES, VALID, build_trajectory
+from mcl3d.sim.trajectories import (
+    SCENARIO_SENSOR,
+    SCENARIO_WORLD,
+    TRAJECTORIES,
+    VALID,
+    build_trajectory,
+    default_duration_s,
+)
 from mcl3d.sim.wheel_odometry import WheelOdometryConfig, WheelOdometrySimulator
 from mcl3d.sim.worlds import WORLDS, build_world
 
@@ -57,14 +64,23 @@ class WorldConfig(Section):
     building_floors: int = Field(3, description="near-identical floors (3.5 m apart)")
     forest_rows: int = Field(10, description="tree rows (4 m apart)")
     forest_trees_per_row: int = Field(20, description="trees per row (3 m apart)")
+    forest_border_m: float = Field(0.0, description="wild wood around the rows (m)")
+    forest_undergrowth: float = Field(0.15, description="chance of a shrub beside each tree")
+    forest_roughness_m: float = Field(0.015, description="ground bumps, sigma 1 m apart (m)")
     arena_length_m: float = Field(40.0, description="hall length (m)")
     arena_width_m: float = Field(30.0, description="hall width (m)")
+    warehouse_aisles: int = Field(6, description="look-alike rack aisles (5 m apart)")
+    warehouse_bays: int = Field(13, description="rack bays per row (2.7 m each)")
 
     def sizes(self, world: str) -> dict[str, float]:
         return {"office": {"n_rooms": self.office_rooms},
                 "building": {"n_floors": self.building_floors},
-                "forest": {"rows": self.forest_rows, "trees_per_row": self.forest_trees_per_row},
+                "forest": {"rows": self.forest_rows, "trees_per_row": self.forest_trees_per_row,
+                           "border_m": self.forest_border_m,
+                           "undergrowth": self.forest_undergrowth,
+                           "roughness_m": self.forest_roughness_m},
                 "arena": {"length_m": self.arena_length_m, "width_m": self.arena_width_m},
+                "warehouse": {"n_aisles": self.warehouse_aisles, "n_bays": self.warehouse_bays},
                 }[world]
 
 
@@ -96,9 +112,9 @@ def extrinsics(sensor: str) -> tuple[np.ndarray, np.ndarray]:
 @dataclass
 class SimulateRequest:
     world: str
-    sensor: str
+    sensor: str | None  # None: the trajectory's own (`SCENARIO_SENSOR`), else vlp16
     trajectory: str
-    duration_s: float
+    duration_s: float | None  # None: the trajectory's own (`default_duration_s`)
     seed: int
     output: Path
     config_path: Path | None = None
@@ -139,11 +155,21 @@ def _validate(req: SimulateRequest) -> None:
     if req.trajectory not in VALID[req.world]:
         raise ConfigError(f"trajectory {req.trajectory!r} does not fit world {req.world!r}; "
                           f"choose one of {', '.join(VALID[req.world])}")
-    if not np.isfinite(req.duration_s) or req.duration_s <= 0:
+    if req.duration_s is not None and (not np.isfinite(req.duration_s)
+                                       or req.duration_s <= 0):
         raise ConfigError(f"the duration must be > 0 seconds, got {req.duration_s:g}",
                           setting="duration")
     if req.seed < 0:
         raise ConfigError(f"the seed must be >= 0, got {req.seed}", setting="seed")
+
+
+def with_scenario_world(cfg: SimConfig, trajectory: str) -> SimConfig:
+    """`cfg` with a named scenario's world settings (`SCENARIO_WORLD`) wherever the config
+    left the default, so the saved config lists the world that was simulated."""
+    defaults = WorldConfig()
+    update = {key: value for key, value in SCENARIO_WORLD.get(trajectory, {}).items()
+              if getattr(cfg.world, key) == getattr(defaults, key)}
+    return cfg.model_copy(update={"world": cfg.world.model_copy(update=update)})
 
 
 def output_paths(req: SimulateRequest) -> list[Path]:
@@ -169,15 +195,20 @@ def run(request: SimulateRequest, on_progress: ProgressCallback | None = None
     """Simulate and write everything `request` asks for; see the module docstring."""
     req = request
     wall0 = time.perf_counter()
+    if req.sensor is None:
+        req = replace(req, sensor=SCENARIO_SENSOR.get(req.trajectory, "vlp16"))
     _validate(req)
-    cfg = cfgmod.load(SimConfig, req.config_path, req.overrides)
+    cfg = with_scenario_world(cfgmod.load(SimConfig, req.config_path, req.overrides),
+                              req.trajectory)
     outputs = output_paths(req)
     for path in outputs:
         check_writable(path, req.force)
+    world = build_world(req.world, seed=req.seed, **cfg.world.sizes(req.world))
+    if req.duration_s is None:
+        req = replace(req, duration_s=default_duration_s(world, req.trajectory))
     n_scans = _scan_count(req, cfg)
     period = 1.0 / cfg.lidar.rate_hz
 
-    world = build_world(req.world, seed=req.seed, **cfg.world.sizes(req.world))
     traj = build_trajectory(world, req.trajectory, req.duration_s, seed=req.seed)
     lidar = make_lidar(req.sensor)
     caster = WorldCaster(world)

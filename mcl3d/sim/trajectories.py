@@ -25,12 +25,14 @@ from mcl3d.core.geometry import se3, se3_inverse
 from mcl3d.sim.spline import QuinticHermite, catmull_rom_rates, knot_accelerations
 from mcl3d.sim.worlds import World
 
-TRAJECTORIES = ("ground", "loop", "handheld", "drone", "elevator", "kidnap")
+TRAJECTORIES = ("ground", "loop", "handheld", "drone", "elevator", "kidnap", "paper-forest",
+                "paper-elevator")
 VALID = {
     "office": ("ground", "loop", "handheld", "kidnap"),
-    "building": ("ground", "loop", "handheld", "elevator", "kidnap"),
-    "forest": ("ground", "loop", "handheld", "drone", "kidnap"),
+    "building": ("ground", "loop", "handheld", "elevator", "kidnap", "paper-elevator"),
+    "forest": ("ground", "loop", "handheld", "drone", "kidnap", "paper-forest"),
     "arena": ("ground", "loop", "handheld", "drone", "kidnap"),
+    "warehouse": ("ground", "loop", "handheld", "kidnap"),
 }
 GRAVITY_MPS2 = 9.80665
 REST_S = 1.5  # the rig stands still this long at the start and end of each path
@@ -200,9 +202,9 @@ def _resample(points: np.ndarray, step_m: float) -> tuple[np.ndarray, np.ndarray
 
 def _timed_path(waypoints: np.ndarray, style: _Style, t0: float, min_end_s: float | None,
                 closed: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Knot times, xy and heading along the smoothed route, speed limited by turn rate and
-    acceleration, starting and ending at rest. A closed route is repeated until the motion
-    lasts past `min_end_s`."""
+    """Knot times, xy (xyz for waypoints with a height) and heading along the smoothed
+    route, speed limited by turn rate and acceleration, starting and ending at rest. A
+    closed route is repeated until the motion lasts past `min_end_s`."""
     loop_m = float(np.linalg.norm(np.diff(np.vstack([waypoints, waypoints[:1]]), axis=0),
                                   axis=1).sum())
     repeats = 1 if min_end_s is None else max(1, int((min_end_s - t0) * style.speed_mps / loop_m))
@@ -230,7 +232,7 @@ def _timed_path(waypoints: np.ndarray, style: _Style, t0: float, min_end_s: floa
     pad = int(np.ceil(REST_S / dt))
     n = max(int(np.ceil((t[-1] - t0) / dt)), 1)
     t_path = np.linspace(t0, t[-1], n + 1)
-    xy = np.column_stack([np.interp(t_path, t, curve[:, i]) for i in range(2)])
+    xy = np.column_stack([np.interp(t_path, t, curve[:, i]) for i in range(curve.shape[1])])
     heading = np.interp(t_path, t, heading)
     xy = np.vstack([np.repeat(xy[:1], pad, axis=0), xy, np.repeat(xy[-1:], pad, axis=0)])
     heading = np.concatenate([np.full(pad, heading[0]), heading, np.full(pad, heading[-1])])
@@ -336,6 +338,145 @@ def _elevator(world: World, duration_s: float, rng: np.random.Generator) -> SimT
                          door_closed_s=(ride_start - 1.0, ride_end + 1.0), cab_z0_m=z_top)
 
 
+# The SLAM paper's forest recording: a MID-360 carried at a careful walk over uneven ground,
+# with the irregular turns of a hand-held sensor on top of the gait's regular sway.
+PAPER_FOREST_STYLE = _Style(1.0, 0.8, 0.6, 0.04)
+PAPER_FOREST_JITTER_DEG = (1.0, 1.0, 2.0)  # roll, pitch, yaw sigma of the irregular part
+PAPER_FOREST_JITTER_S = 0.3  # its correlation time
+# World settings (SimConfig.world keys) a named scenario uses wherever the config leaves the
+# default: paper-forest walks the plantation inside a wild wood (something to see when facing
+# out of the rows, as in a real wood), with shrubs and a bumpy floor.
+SCENARIO_WORLD = {"paper-forest": {"forest_border_m": 20.0, "forest_undergrowth": 0.4,
+                                   "forest_roughness_m": 0.04}}
+SCENARIO_SENSOR = {"paper-forest": "mid360"}  # the LiDAR a scenario uses unless told
+
+
+def _paper_forest_path(world: World) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    route = world.routes.get("paper-forest")
+    if route is None:
+        raise ConfigError("trajectory 'paper-forest' needs a forest of at least 8 rows "
+                          "(world.forest_rows)")
+    return _timed_path(route, PAPER_FOREST_STYLE, 0.0, None, closed=False)
+
+
+def _paper_forest(world: World, duration_s: float, rng: np.random.Generator) -> SimTrajectory:
+    """The forest walk of `worlds._paper_forest_route`, hand-held: the gait of the
+    'handheld' rig plus smooth random roll, pitch and yaw. A duration past the walk's end
+    leaves the walker standing at the end; a shorter one cuts the walk."""
+    t, xy, heading = _paper_forest_path(world)
+    values = _pose_values(world, "handheld", t, xy, heading, 0.0, False, rng)
+    env = np.clip(np.minimum(t - t[0], t[-1] - t) / 2.0, 0.0, 1.0)
+    sigma_knots = PAPER_FOREST_JITTER_S / PAPER_FOREST_STYLE.knot_dt_s
+    for axis, sigma_deg in enumerate(PAPER_FOREST_JITTER_DEG):
+        noise = gaussian_filter1d(rng.standard_normal(len(t)), sigma_knots, mode="nearest")
+        noise *= np.radians(sigma_deg) / max(float(np.std(noise)), 1e-12)
+        values[:, 3 + axis] += env * noise
+    stops = np.zeros(len(t), dtype=bool)
+    stops[[0, -1]] = True
+    return SimTrajectory("paper-forest", world, t, values, stops, duration_s)
+
+
+# The SLAM paper's elevator recording (its Fig. 6), hand-held through `worlds.building`: up
+# the stairwell from the ground floor, along every floor below the top to the elevator's
+# landing and back, to the top floor and into the cab, one floor down, and back down the
+# stairs to the ground floor's furnished room where the walk began. The stairwell has no
+# landing slabs, so the walk crosses the well at floor height; it never passes through a solid.
+PAPER_ELEVATOR_STYLE = STYLES["handheld"]
+PAPER_ELEVATOR_CARRY_M = -0.3  # held at the chest: headroom under the flight above
+STAIR_DOOR_XY = (4.0, 7.25)  # in the corridor, in front of the stairwell's door
+GROUND_ROOM_XY = ((11.6, 7.25), (11.6, 4.4), (13.0, 2.8), (14.4, 3.4), (13.2, 4.8),
+                  (11.7, 5.3), (11.6, 7.25))  # room 2, as the building's 'loop' route
+
+
+def _stairs(z_from: float, z_to: float, rise: float) -> list[tuple[float, float, float]]:
+    """(x, y, feet height) from the stairwell door on the floor at `z_from` to the one on
+    the adjacent floor at `z_to`: along the south flight eastwards, round the turn, along
+    the north flight westwards (each climbs half a storey over x 3.2 -> 0.2 m)."""
+    z, half = min(z_from, z_to), rise / 2
+    x, y = STAIR_DOOR_XY
+    up = [(x, y, z), (x, 9.7, z), (4.0, 11.2, z), (1.2, 11.2, z), (0.5, 10.3, z),
+          (0.5, 9.2, z + 0.1 * half), (3.2, 9.2, z + half), (4.0, 9.7, z + half),
+          (4.0, 12.7, z + half), (3.2, 13.2, z + half), (0.5, 13.2, z + 1.9 * half),
+          (0.7, 12.0, z + rise), (4.0, 11.2, z + rise), (x, 9.7, z + rise), (x, y, z + rise)]
+    return up if z_to > z_from else up[::-1]
+
+
+def _to_the_landing_and_back(door_xy: np.ndarray, z: float) -> list[tuple[float, float, float]]:
+    """Along the corridor from the stairwell to the elevator's landing doors, round, and back."""
+    x, y = STAIR_DOOR_XY
+    return [(x + 2.0, 6.75, z), (door_xy[0] - 0.5, 6.75, z), (door_xy[0] + 0.8, y, z),
+            (door_xy[0] - 0.5, 7.8, z), (x + 2.0, 7.8, z), (x, y, z)]
+
+
+def _paper_elevator_paths(world: World):
+    """The two walks (knot times, xyz of the feet, heading) around the ride and its times:
+    up to the top floor into the cab, and from the cab one floor lower back down."""
+    elev = world.elevator
+    floors = elev.floor_z_m
+    if len(floors) < 3:
+        raise ConfigError("trajectory 'paper-elevator' needs a building of at least 3 floors "
+                          "(world.building_floors)")
+    rise = floors[1] - floors[0]
+    cab, door = elev.center_xy, elev.door_approach_xy
+    room = [(x, y, floors[0]) for x, y in GROUND_ROOM_XY]
+    walk_up = [(16.0, 7.25, floors[0]), *room]
+    for k in range(1, len(floors)):
+        walk_up += _stairs(floors[k - 1], floors[k], rise)
+        if k < len(floors) - 1:
+            walk_up += _to_the_landing_and_back(door, floors[k])
+    walk_up += [(door[0] - 1.2, door[1], floors[-1]), (cab[0], door[1] + 0.5, floors[-1]),
+                (cab[0], cab[1], floors[-1])]
+    t1, p1, h1 = _timed_path(np.array(walk_up), PAPER_ELEVATOR_STYLE, 0.0, None, closed=False)
+    ride_start = t1[-1] + 5.0 + 1.5  # turn round in the cab, doors close
+    ride_end = ride_start + max(4.0, 1.6 * rise)
+    walk_down = [(cab[0], cab[1], floors[-2]), (cab[0], door[1] + 0.5, floors[-2]),
+                 (door[0] - 1.2, door[1], floors[-2])]
+    for k in range(len(floors) - 2, 0, -1):
+        walk_down += _stairs(floors[k], floors[k - 1], rise)
+    walk_down += [*room[::-1], (16.0, 7.25, floors[0])]
+    t3, p3, h3 = _timed_path(np.array(walk_down), PAPER_ELEVATOR_STYLE, ride_end + 1.5, None,
+                             closed=False)
+    return (t1, p1, h1), (t3, p3, h3), (ride_start, ride_end)
+
+
+def _paper_elevator(world: World, duration_s: float, rng: np.random.Generator) -> SimTrajectory:
+    """The walk of `_paper_elevator_paths`, hand-held (the 'handheld' rig's gait); in the cab
+    the walker turns round and stands still while it rides one floor down. A duration past
+    the walk's end leaves the walker standing at the end; a shorter one cuts the walk."""
+    elev = world.elevator
+    (t1, p1, h1), (t3, p3, h3), (ride_start, ride_end) = _paper_elevator_paths(world)
+    z_top, z_low = elev.floor_z_m[-1], elev.floor_z_m[-2]
+    v1 = _pose_values(world, "handheld", t1, p1[:, :2], h1, 0.0, True, rng)
+    v3 = _pose_values(world, "handheld", t3, p3[:, :2], h3, 0.0, True, rng)
+    v1[:, 2] += p1[:, 2] + PAPER_ELEVATOR_CARRY_M
+    v3[:, 2] += p3[:, 2] + PAPER_ELEVATOR_CARRY_M
+    yaw_out = h1[-1] + np.pi
+    v3[:, 5] += np.round((yaw_out - v3[0, 5]) / (2 * np.pi)) * 2 * np.pi
+    hold = np.repeat(v1[-1:], 3, axis=0)  # turned round, then the ride
+    hold[:, 5] = yaw_out
+    hold[2, 2] += z_low - z_top
+    t = np.concatenate([t1, [t1[-1] + 5.0, ride_start, ride_end], t3])
+    values = np.vstack([v1, hold, v3])
+    stops = np.zeros(len(t), dtype=bool)
+    stops[[0, len(t1) - 1, len(t1), len(t1) + 1, len(t1) + 2, len(t1) + 3, -1]] = True
+    end = max(duration_s, t3[-1]) + 1.0
+    carrier = QuinticHermite(np.array([0.0, ride_start, ride_end, end]),
+                             np.array([[0.0], [0.0], [z_low - z_top], [z_low - z_top]]),
+                             np.zeros((4, 1)))
+    return SimTrajectory("paper-elevator", world, t, values, stops, duration_s, carrier=carrier,
+                         door_closed_s=(ride_start - 1.0, ride_end + 1.0), cab_z0_m=z_top)
+
+
+def default_duration_s(world: World, kind: str) -> float:
+    """Seconds to simulate when none are asked for: a named route's own length (to the
+    scan after its end), else 10 s."""
+    if kind == "paper-forest":
+        return float(np.ceil(_paper_forest_path(world)[0][-1]))
+    if kind == "paper-elevator":
+        return float(np.ceil(_paper_elevator_paths(world)[1][0][-1]))
+    return 10.0
+
+
 def build_trajectory(world: World, kind: str, duration_s: float, seed: int = 0) -> SimTrajectory:
     """The trajectory `kind` through `world`, lasting `duration_s` seconds."""
     if not duration_s > 0:
@@ -348,6 +489,10 @@ def build_trajectory(world: World, kind: str, duration_s: float, seed: int = 0) 
     rng = np.random.default_rng([seed, 7])
     if kind == "elevator":
         return _elevator(world, duration_s, rng)
+    if kind == "paper-forest":
+        return _paper_forest(world, duration_s, rng)
+    if kind == "paper-elevator":
+        return _paper_elevator(world, duration_s, rng)
     rig = {"loop": "ground", "kidnap": "ground"}.get(kind, kind)
     route = world.routes[world.kidnap_route if kind == "kidnap" else kind]
     level = len(world.floor_z_m) - 1 if kind == "kidnap" else 0

@@ -5,7 +5,9 @@
 - building: near-identical floors joined by a stairwell and an elevator whose cab moves
   (the SLAM paper's elevator kidnapping);
 - forest: a plantation in regular rows on uneven ground (the SLAM paper's loop ambiguity);
-- arena: a large, feature-poor, nearly symmetric hall (the Hilti drone-testing arena).
+- arena: a large, feature-poor, nearly symmetric hall (the Hilti drone-testing arena);
+- warehouse: a hall of identical pallet-rack aisles with one drive-over loading ramp (MCL
+  under real ambiguity with a short-range sensor; built in `warehouse.py`).
 
 Every world also carries the routes its trajectories follow (waypoints through free space)
 and the rigid jump used by the kidnap trajectory (onto a look-alike place).
@@ -22,7 +24,7 @@ from mcl3d.core.errors import ConfigError
 from mcl3d.core.geometry import rpy_to_rot, se3
 from mcl3d.sim.mesh import Mesh, MeshBuilder, merge
 
-WORLDS = ("office", "building", "forest", "arena")
+WORLDS = ("office", "building", "forest", "arena", "warehouse")
 
 # Diffuse reflectivities of the materials (0..1), used for LiDAR intensity.
 WALL, FLOOR, CEILING, WOOD, METAL, BARK, LEAVES, SOIL, CONCRETE = (
@@ -66,8 +68,11 @@ class World:
 
 
 def build_world(name: str, seed: int = 0, **size) -> World:
-    """The world called `name` ('office', 'building', 'forest', 'arena')."""
-    builders = {"office": office, "building": building, "forest": forest, "arena": arena}
+    """The world called `name` ('office', 'building', 'forest', 'arena', 'warehouse')."""
+    from mcl3d.sim.warehouse import warehouse  # that module builds on this one's helpers
+
+    builders = {"office": office, "building": building, "forest": forest, "arena": arena,
+                "warehouse": warehouse}
     if name not in builders:
         raise ConfigError(f"unknown world {name!r}; choose one of {', '.join(WORLDS)}")
     return builders[name](seed=seed, **size)
@@ -231,7 +236,7 @@ def building(seed: int = 0, n_floors: int = 3, floor_height_m: float = 3.5) -> W
             south_doors.append((x0 + 1.0, x0 + 2.2))
             _furnish_room(b, rng, x0, 0.0, ys, z, room_w, +1.0)
             if i == 0:
-                north_doors.append((1.5, 3.5))  # stairwell entrance
+                north_doors.append((3.3, 4.7))  # stairwell entrance, beside the flights
             elif x0 + room_w <= shaft[0] - 0.2 or x0 >= shaft[1] + 0.2:
                 north_doors.append((x0 + 1.0, x0 + 2.2))
                 _furnish_room(b, rng, x0, width, width - yn, z, room_w, -1.0)
@@ -287,24 +292,32 @@ def building(seed: int = 0, n_floors: int = 3, floor_height_m: float = 3.5) -> W
 
 
 def forest(seed: int = 0, rows: int = 10, trees_per_row: int = 20, row_spacing_m: float = 4.0,
-           tree_spacing_m: float = 3.0) -> World:
+           tree_spacing_m: float = 3.0, border_m: float = 0.0, undergrowth: float = 0.15,
+           roughness_m: float = 0.015) -> World:
     """Plantation in regular rows: trunks of varied radius, conical canopies, uneven ground
-    that repeats every two rows, so lanes look alike (many loop candidates)."""
+    that repeats every two rows, so lanes look alike (many loop candidates). `border_m` of
+    wild wood around it (trees and shrubs at random, beyond a 4 m clear headland) give a
+    sensor facing out of the rows something to see; `undergrowth` is the chance of a shrub
+    beside each plantation tree; `roughness_m` the ground's bumps (sigma, 1 m apart)."""
     if rows < 6 or trees_per_row < 6:  # the kidnap jumps two rows across
         raise ConfigError(f"world.forest_rows and world.forest_trees_per_row must be >= 6, "
                           f"got {rows} and {trees_per_row}")
+    if border_m < 0 or not 0 <= undergrowth <= 1 or roughness_m < 0:
+        raise ConfigError(f"world.forest_border_m and world.forest_roughness_m must be >= 0 "
+                          f"and world.forest_undergrowth in 0..1, got {border_m:g}, "
+                          f"{roughness_m:g} and {undergrowth:g}")
     rng = np.random.default_rng([seed, 3])
     b, g = MeshBuilder(), MeshBuilder()
     length = (trees_per_row + 1) * tree_spacing_m
     width = (rows + 1) * row_spacing_m
     period = 2 * row_spacing_m
-    xs = np.arange(-5.0, length + 5.0 + 1e-9, 1.0)
-    ys = np.arange(-5.0, width + 5.0 + 1e-9, 1.0)
+    xs = np.arange(-5.0 - border_m, length + 5.0 + border_m + 1e-9, 1.0)
+    ys = np.arange(-5.0 - border_m, width + 5.0 + border_m + 1e-9, 1.0)
     gx, gy = np.meshgrid(xs, ys, indexing="ij")
     phase = rng.uniform(0, 2 * np.pi, 3)
     z = (0.25 * np.sin(2 * np.pi * gx / 23.0 + phase[0]) * np.cos(2 * np.pi * gy / period)
          + 0.25 * np.sin(2 * np.pi * gx / 37.0 + phase[1])
-         + 0.015 * rng.standard_normal(gx.shape))
+         + roughness_m * rng.standard_normal(gx.shape))
     b.heightfield(xs, ys, z, SOIL)
     g.heightfield(xs, ys, z, SOIL)
     for r in range(rows):
@@ -315,21 +328,77 @@ def forest(seed: int = 0, rows: int = 10, trees_per_row: int = 20, row_spacing_m
             h = rng.uniform(7.0, 12.0)
             b.cylinder((cx, cy), radius, -0.8, h, BARK, sides=10)
             b.cone((cx, cy), rng.uniform(1.0, 1.6), 0.55 * h, h + 1.5, LEAVES, sides=10)
-            if rng.random() < 0.15:  # undergrowth
+            if rng.random() < undergrowth:
                 b.cone((cx + rng.uniform(-1, 1), cy + rng.uniform(0.6, 1.2)), 0.5, -0.3, 0.9,
                        LEAVES, sides=6)
+    if border_m > 0:
+        _wild_wood(b, rng, (-4.0, length + 4.0, 0.0, width), border_m + 5.0)
     lane = lambda r: (r + 1.5) * row_spacing_m  # noqa: E731
     x0, x1 = 1.5, length - 1.5
     loop = [(x0, lane(0)), (x1, lane(0)), (x1, lane(2)), (x0, lane(2))]
     serp = [(x0, lane(0)), (x1, lane(0)), (x1, lane(1)), (x0, lane(1)), (x0, lane(2)),
             (x1, lane(2)), (x1, lane(3)), (x0, lane(3)), (x0 - 0.01, lane(0) + 0.5)]
+    routes = {"ground": np.array(loop), "loop": np.array(serp), "handheld": np.array(loop),
+              "drone": np.array(serp), "kidnap": np.array(loop)}
+    if rows >= PAPER_FOREST_MIN_ROWS:
+        routes["paper-forest"] = _paper_forest_route(lane, length)
     return World(
-        name="forest", seed=seed, static=b.build(), ground=g.build(),
-        routes={"ground": np.array(loop), "loop": np.array(serp), "handheld": np.array(loop),
-                "drone": np.array(serp), "kidnap": np.array(loop)},
+        name="forest", seed=seed, static=b.build(), ground=g.build(), routes=routes,
         floor_z_m=[0.0], T_kidnap=se3(np.eye(3), [0.0, period, 0.0]), kidnap_route="kidnap",
         info={"trees": str(rows * trees_per_row), "size": f"{length:.0f} x {width:.0f} m"},
     )
+
+
+WILD_TREE_SPACING_M = 2.0  # nearest distance between two trees of the wild wood
+WILD_TREES_PER_M2 = 1 / 12.0  # as dense as the plantation
+WILD_SHRUBS_PER_M2 = 1 / 20.0
+
+
+def _wild_wood(b: MeshBuilder, rng: np.random.Generator, clear: tuple, margin_m: float) -> None:
+    """Trees and shrubs at random in the band `margin_m` wide around the rectangle `clear`
+    (x0, x1, y0, y1), trees no closer than WILD_TREE_SPACING_M (dart throwing)."""
+    x0, x1, y0, y1 = clear
+    lo, hi = np.array([x0 - margin_m, y0 - margin_m]), np.array([x1 + margin_m, y1 + margin_m])
+    area = float(np.prod(hi - lo)) - (x1 - x0) * (y1 - y0)
+
+    def outside(p):
+        return ~((p[:, 0] > x0) & (p[:, 0] < x1) & (p[:, 1] > y0) & (p[:, 1] < y1))
+
+    darts = rng.uniform(lo, hi, size=(int(4 * area * WILD_TREES_PER_M2), 2))
+    darts = darts[outside(darts)]
+    trees: list[np.ndarray] = []
+    for p in darts:
+        if len(trees) >= area * WILD_TREES_PER_M2:
+            break
+        if not trees or np.min(np.linalg.norm(np.array(trees) - p, axis=1)) >= WILD_TREE_SPACING_M:
+            trees.append(p)
+    for p in trees:
+        h = rng.uniform(6.0, 14.0)
+        b.cylinder(p, rng.uniform(0.08, 0.3), -0.8, h, BARK, sides=10)
+        b.cone(p, rng.uniform(1.0, 2.2), rng.uniform(0.4, 0.7) * h, h + 1.5, LEAVES, sides=10)
+    shrubs = rng.uniform(lo, hi, size=(int(area * WILD_SHRUBS_PER_M2 * 1.5), 2))
+    for p in shrubs[outside(shrubs)][: int(area * WILD_SHRUBS_PER_M2)]:
+        b.cone(p, rng.uniform(0.4, 1.0), -0.3, rng.uniform(0.6, 1.6), LEAVES, sides=6)
+
+
+PAPER_FOREST_MIN_ROWS = 8  # the route's serpentine climbs to lane 6 (between rows 6 and 7)
+PAPER_FOREST_LANES = (1, 2, 3, 4, 5, 6, 4, 2)  # walked alternately east and west
+PAPER_FOREST_LANE_OFFSET_M = 0.3  # the walker keeps north of the centre line: undergrowth
+# grows on each lane's south side, up to 0.3 m from the centre line
+
+
+def _paper_forest_route(lane, length_m: float) -> np.ndarray:
+    """The SLAM paper's forest walk: a serpentine up lanes 1..6, back down over lanes 4 and
+    2 (revisits, one against and one along the first pass's direction), then into lane 1
+    where it began. Turns are on headlands 1 m beyond the rows' ends, clear of undergrowth."""
+    ends = (-1.0, length_m + 1.0)
+    y = lambda r: lane(r) + PAPER_FOREST_LANE_OFFSET_M  # noqa: E731
+    points = []
+    for k, r in enumerate(PAPER_FOREST_LANES):
+        xa, xb = ends if k % 2 == 0 else ends[::-1]
+        points += [(xa, y(r)), (xb, y(r))]
+    points += [(ends[0], y(1)), (ends[0] + 4.0, y(1))]
+    return np.array(points)
 
 
 def arena(seed: int = 0, length_m: float = 40.0, width_m: float = 30.0,

@@ -156,7 +156,7 @@ def test_elevator_needs_a_long_enough_duration():
         build_trajectory(world("building"), "elevator", 5.0)
 
 
-@pytest.mark.parametrize("name", ["office", "building", "forest", "arena"])
+@pytest.mark.parametrize("name", ["office", "building", "forest", "arena", "warehouse"])
 def test_kidnap_jumps_in_ground_truth_but_not_in_imu_or_odometry(name):
     w = world(name)
     traj = build_trajectory(w, "kidnap", 30.0)
@@ -172,7 +172,7 @@ def test_kidnap_jumps_in_ground_truth_but_not_in_imu_or_odometry(name):
     assert np.allclose(gyro[0], gyro[1], atol=1e-4) and np.allclose(accel[0], accel[1], atol=1e-3)
 
 
-@pytest.mark.parametrize("name", ["office", "building", "forest", "arena"])
+@pytest.mark.parametrize("name", ["office", "building", "forest", "arena", "warehouse"])
 def test_every_trajectory_stays_in_free_space(name):
     import open3d as o3d
 
