@@ -4,7 +4,7 @@ Per scan:
 1. the odometry front-end (mcl3d.odometry.lidar_odometry: scan-to-model GICP + IMU
    preintegration) gives the relative motion ΔT and its covariance (inverse Hessian);
 2. prediction: every particle moves by ΔT exp(δ), δ ~ N(0, Σ) (eq. 1), plus a vertical
-   random walk while the elevator detector holds (median range under a threshold), centred
+   random walk while the elevator detector holds (the scan closed in every direction), centred
    on the IMU's vertical motion when the log has an IMU; in the elevator the scan only sees
    the moving cab, so it neither weighs particles nor becomes a keyframe;
 3. correction: each particle picks its 3 nearest keyframes in its own map; particles with a
@@ -33,13 +33,12 @@ import numpy as np
 import taichi as ti
 
 from mcl3d.core.geometry import (
-    quat_to_rot,
     rotation_angle,
-    se3,
     se3_inverse,
     se3_log,
     transform_points,
 )
+from mcl3d.evaluation.consistency import weighted_pose_mean
 from mcl3d.kernels.scan_grid import MAX_K
 from mcl3d.kernels.slam import NEIGHBOURS, UNSCORED
 from mcl3d.odometry.lidar_odometry import LOST_COVARIANCE, LidarOdometry, OdometryFrame
@@ -85,6 +84,14 @@ class SlamFrame:
     travel_m: float
     odometry_warnings: list[str]
     timings_ms: dict[str, float] = field(default_factory=dict)
+    # the cloud: weighted mean of the current poses and their 6x6 covariance in the tangent
+    # at the mean (rotation first), as evaluation.consistency reads them
+    T_mean: np.ndarray = field(default_factory=lambda: np.eye(4))
+    covariance: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))
+    # keyframes the representative took a loop correction toward on this scan, and its
+    # pose relative to each of them in its own map (T_keyframe_lidar) after the scan
+    loop_keyframes: tuple[int, ...] = ()
+    loop_relative: tuple[np.ndarray, ...] = ()
 
 
 class _Stopwatch:
@@ -200,6 +207,7 @@ class MonteCarloSlam:
         self.gicp = BatchGicp(self.maps, max_groups=groups, max_rows=groups,
                               max_source_points=cfg.correction.points)
         self.particles = SlamParticles(cfg.particles, kf.capacity, self.gicp, cfg.seed)
+        self._keyframes_full = False  # warned once when keyframes.capacity is reached
         self.grid = ScanGrid(max_voxels=cfg.odometry.max_points)
         self._scan_pool = SourcePool(cfg.odometry.max_points)  # the downsampled scan
         self.frames: list[SlamFrame] = []
@@ -229,7 +237,7 @@ class MonteCarloSlam:
         odo = self.odometry.step(points, times, stamp_ns, imu)
         watch.lap("odometry")
         first = len(self.frames) == 0
-        elevator = in_elevator(np.linalg.norm(points, axis=1), cfg.elevator.median_range_m)
+        elevator = in_elevator(points, cfg.elevator, cfg.front_end.fov_deg)
         lift = self._elevator_shift(elevator, odo, imu, stamp_ns)
         down, covs = self._preprocess(points, times, odo, first)
         watch.lap("preprocess")
@@ -238,24 +246,36 @@ class MonteCarloSlam:
         T_odom = self._with_offset(odo.T_world_lidar)
         cov = None if first else self._predict(odo, T_odom, lift, step)
         watch.lap("predict")
-        looping, corrected, scored = self._correct_and_weigh(down, covs, elevator, cov, T_odom,
-                                                             watch)
+        looping, corrected, scored, loops = self._correct_and_weigh(down, covs, elevator, cov,
+                                                                    T_odom, watch)
         keyframe = not elevator and self._keyframe_due(down, T_odom)
+        warnings = list(odo.warnings)
+        if keyframe and self.particles.num_keyframes >= self.particles.max_keyframes:
+            keyframe = False  # the run goes on against the keyframes it has
+            if not self._keyframes_full:
+                warnings.append(f"all {self.particles.max_keyframes} keyframes are used: later "
+                                "scans are tracked but not kept as keyframes (raise "
+                                "keyframes.capacity)")
+            self._keyframes_full = True
         if keyframe:
             self._add_keyframe(down, covs, T_odom[:3, 3])
         watch.lap("keyframe")
-        pruned, post = self._prune(step, scored)
+        pruned, post, origin = self._prune(step, scored)
         watch.lap("prune")
         p = self.particles
         self._rep = int(np.argmax(post))
-        positions = p.positions()
-        T_rep = se3(quat_to_rot(p.quaternion(self._rep)), positions[self._rep])
-        hyp = count_hypotheses(positions, post, cfg.pruning.hypothesis_cell_m)
+        poses = p.current_poses()
+        T_rep = poses[self._rep]
+        hyp = count_hypotheses(poses[:, :3, 3], post, cfg.pruning.hypothesis_cell_m)
+        T_mean, cloud_cov = weighted_pose_mean(poses, post)
+        loop_kfs = loops.get(int(origin[self._rep]), ())
+        kf_poses = p.keyframe_poses(self._rep)[list(loop_kfs)] if loop_kfs else []
         watch.lap("estimate")
         frame = SlamFrame(stamp_ns, T_rep, odo.T_world_lidar, T_odom, self._rep,
                           float(1.0 / np.sum(post**2)), float(post.max()), hyp, looping,
                           corrected, pruned, keyframe, p.num_keyframes, elevator,
-                          self.travel_m, list(odo.warnings), watch.ms)
+                          self.travel_m, warnings, watch.ms, T_mean, cloud_cov,
+                          loop_kfs, tuple(se3_inverse(T) @ T_rep for T in kf_poses))
         self.frames.append(frame)
         if keyframe:
             self.keyframe_frames.append(len(self.frames) - 1)
@@ -276,23 +296,28 @@ class MonteCarloSlam:
 
     def _correct_and_weigh(self, down: np.ndarray, covs: np.ndarray, elevator: bool,
                            cov: np.ndarray | None, T_odom: np.ndarray, watch: _Stopwatch
-                           ) -> tuple[int, int, bool]:
+                           ) -> tuple[int, int, bool, dict[int, tuple[int, ...]]]:
         """Loop correction, likelihood and refinement against each particle's neighbour
         keyframes; returns (particles looping, particles corrected, whether the scan was
-        scored). Nothing is scored without keyframes, in the elevator or on a tiny scan."""
+        scored, the loop keyframes of each corrected particle). Nothing is scored without
+        keyframes, in the elevator or on a tiny scan."""
         cfg, corr = self.cfg, self.cfg.correction
         p = self.particles
         looping = corrected = 0
+        loops: dict[int, tuple[int, ...]] = {}
         src_pts, src_covs = thin(down, covs, corr.points)
         scored = p.num_keyframes > 0 and len(src_pts) >= corr.min_inliers and not elevator
         if scored:
             self.gicp.set_source(src_pts, src_covs)
-            gate = (self.travel_m, cfg.loop_closure.min_travel_m, self._up(),
-                    cfg.loop_closure.neighbour_max_dz_m, np.deg2rad(cfg.front_end.fov_deg / 2))
+            loop = cfg.loop_closure
+            facing_rad = np.deg2rad(cfg.front_end.fov_deg / 2) if loop.facing_gate else np.pi
+            gate = (self.travel_m, loop.min_travel_m, self._up(), loop.neighbour_max_dz_m,
+                    facing_rad)
             looping = p.select_neighbours(*gate)
             for _ in range(corr.gn_iterations if looping else 0):
                 corrected = p.correct(self.travel_m, self.drift, T_odom[:3, 3], len(src_pts),
                                       corr)
+                loops = loops or p.loop_keyframes()
                 p.select_neighbours(*gate)
         watch.lap("correct")
         if scored:
@@ -300,8 +325,12 @@ class MonteCarloSlam:
         watch.lap("weigh")
         if scored and corr.refine_without_loop and cov is not None:
             p.refine(cov, corr)
+        if scored and corr.spread_after_step and cov is not None:
+            p.spread(cov, len(src_pts), cfg.likelihood.points_weight, corr.min_inliers,
+                     corr.refine_without_loop, corrected > 0,
+                     np.random.default_rng([cfg.seed, len(self.frames), 1]))
         watch.lap("refine")
-        return looping, corrected, scored
+        return looping, corrected, scored, loops
 
     def _with_offset(self, T: np.ndarray) -> np.ndarray:
         out = T.copy()
@@ -386,9 +415,10 @@ class MonteCarloSlam:
         self.keyframe_clouds.append(down.astype(np.float32))
         self._last_keys = np.unique(voxel_keys(down, self.cfg.keyframes.overlap_voxel_m))
 
-    def _prune(self, step: int, scored: bool) -> tuple[int, np.ndarray]:
+    def _prune(self, step: int, scored: bool) -> tuple[int, np.ndarray, np.ndarray]:
         """Prune; particles without a neighbour keyframe (unmapped space, another floor) get
-        the median likelihood of the scored ones: no evidence for or against them."""
+        the median likelihood of the scored ones: no evidence for or against them. Returns
+        (particles pruned, posteriors, the particle each one was before pruning)."""
         p = self.particles
         log_w = p.log_w.to_numpy().astype(np.float64)
         frame_ll = np.zeros_like(log_w)
@@ -402,7 +432,9 @@ class MonteCarloSlam:
         dead, sources, lw = prune_plan(log_w, frame_ll, self.cfg.pruning, rng)
         p.respawn(dead, sources, lw)
         post = np.exp(lw - lw.max())
-        return len(dead), post / post.sum()
+        origin = np.arange(len(lw))
+        origin[dead] = sources
+        return len(dead), post / post.sum(), origin
 
     # ---- results of the representative particle ----
 

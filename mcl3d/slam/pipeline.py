@@ -28,6 +28,7 @@ import numpy as np
 from mcl3d.core import config as config_io
 from mcl3d.core.checkpoint import Checkpointer, write_checkpoint_summary
 from mcl3d.core.errors import Mcl3dError, RunInterrupted
+from mcl3d.core.geometry import rot_to_quat
 from mcl3d.core.outputs import atomic_open, check_writable, output_folder
 from mcl3d.core.progress import Progress, ProgressCallback, report
 from mcl3d.evaluation.run_plots import SLAM_PICTURE, slam_figure, write_png
@@ -207,16 +208,29 @@ def _write(outputs: SlamOutputs, slam: MonteCarloSlam, feed: LidarImuFeed,
     return summary
 
 
+TANGENT = ("rx", "ry", "rz", "x", "y", "z")  # the covariance's axes, rotation first
+COV_UPPER = np.triu_indices(6)
+COV_COLUMNS = [f"cov_{TANGENT[i]}_{TANGENT[j]}" for i, j in zip(*COV_UPPER, strict=True)]
+
+
 def _write_frames(path: Path, frames: list[SlamFrame]) -> None:
+    """One row per scan: the representative's position, the filter's state, the cloud's
+    weighted mean pose and covariance (upper triangle, rad and m), stage times."""
     with atomic_open(path, "w") as f:
         out = csv.writer(f, lineterminator="\n")
         out.writerow(["stamp_s", "x", "y", "z", "representative", "ess", "max_weight",
                       "hypotheses", "loop_particles", "corrected", "pruned", "keyframe",
-                      "keyframes", "elevator", "travel_m", *[f"{s}_ms" for s in STAGES]])
+                      "keyframes", "elevator", "travel_m", *[f"{s}_ms" for s in STAGES],
+                      "mean_x", "mean_y", "mean_z", "mean_qx", "mean_qy", "mean_qz",
+                      "mean_qw", *COV_COLUMNS, "loop_keyframes"])
         for fr in frames:
             x, y, z = fr.T_world_lidar[:3, 3]
             out.writerow([f"{fr.stamp_ns * 1e-9:.9f}", f"{x:.4f}", f"{y:.4f}", f"{z:.4f}",
                           fr.representative, f"{fr.ess:.1f}", f"{fr.max_weight:.4g}",
                           fr.hypotheses, fr.looping, fr.corrected, fr.pruned, int(fr.keyframe),
                           fr.num_keyframes, int(fr.elevator), f"{fr.travel_m:.3f}",
-                          *[f"{fr.timings_ms.get(s, 0.0):.2f}" for s in STAGES]])
+                          *[f"{fr.timings_ms.get(s, 0.0):.2f}" for s in STAGES],
+                          *[f"{v:.5f}" for v in fr.T_mean[:3, 3]],
+                          *[f"{v:.8f}" for v in rot_to_quat(fr.T_mean[:3, :3])],
+                          *[f"{v:.6g}" for v in fr.covariance[COV_UPPER]],
+                          " ".join(str(k) for k in fr.loop_keyframes)])

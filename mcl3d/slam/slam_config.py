@@ -5,6 +5,8 @@ where it is used. Saved as slam_config.yaml beside a run's outputs and loadable 
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import Field, model_validator
 
 from mcl3d.core.config import Section
@@ -59,6 +61,9 @@ class LoopClosureConfig(Section):
     neighbour_max_dz_m: float = Field(2.0, gt=0, description="keyframes more than this above "
                                       "or below a particle are not its neighbours (another "
                                       "floor) (m)")
+    facing_gate: bool = Field(True, description="a loop keyframe must face within "
+                              "front_end.fov_deg / 2 of the particle (not in the paper; see "
+                              "docs/slam.md)")
 
 
 class CorrectionConfig(Section):
@@ -82,6 +87,10 @@ class CorrectionConfig(Section):
                                       "step toward their own newest keyframes per scan, the "
                                       "prediction noise as prior (not in the paper; see "
                                       "docs/slam.md)")
+    spread_after_step: bool = Field(True, description="a particle a step moved draws from "
+                                    "the step's Gaussian posterior, so the cloud does not "
+                                    "collapse on the likelihood's mode (not in the paper; "
+                                    "see docs/slam.md)")
 
 
 class LikelihoodConfig(Section):
@@ -105,10 +114,25 @@ class PruningConfig(Section):
 
 
 class ElevatorConfig(Section):
-    """The elevator detector and the vertical random walk while it holds."""
+    """The elevator detector and the vertical random walk while it holds. `enclosure`
+    (default) fires only when the scan is closed in every azimuth sector, as in a cab with
+    its doors shut; `median` is the paper's test (median range under `median_range_m`),
+    which also fires in narrow aisles and beside walls (docs/slam.md)."""
 
-    median_range_m: float = Field(1.5, ge=0, description="elevator detected while the scan's "
-                                  "median range is below this (0: off) (m)")
+    detector: Literal["enclosure", "median", "off"] = Field(
+        "enclosure", description="enclosure: every azimuth sector closed within "
+        "enclosure_range_m; median: the paper's median range test; off")
+    sectors: int = Field(12, ge=3, le=360, description="azimuth sectors across the field of "
+                         "view (enclosure)")
+    percentile: float = Field(90.0, gt=0, le=100, description="the range percentile of a "
+                              "sector that must be under enclosure_range_m (enclosure)")
+    enclosure_range_m: float = Field(3.0, gt=0, description="a sector is closed when its "
+                                     "percentile range is below this (m): above a cab's "
+                                     "half-diagonal, below a corridor's length (enclosure)")
+    min_sector_points: int = Field(20, ge=1, description="a sector with fewer returns is "
+                                   "open: nothing within the sensor's reach (enclosure)")
+    median_range_m: float = Field(1.5, gt=0, description="elevator detected while the scan's "
+                                  "median range is below this (median) (m)")
     sigma_z_m: float = Field(0.25, ge=0, description="vertical random walk per scan in the "
                              "elevator, without IMU (m)")
     imu_sigma_z_m: float = Field(0.01, ge=0, description="the same around the IMU's vertical "

@@ -12,7 +12,7 @@ import numpy as np
 import taichi as ti
 
 from mcl3d.core.errors import ConfigError
-from mcl3d.core.geometry import quat_to_rot, rot_to_quat, se3
+from mcl3d.core.geometry import quat_to_rot, rot_to_quat, se3, se3_exp
 from mcl3d.kernels import slam as slam_kernels
 from mcl3d.kernels.slam import NEIGHBOURS
 from mcl3d.slam.slam_config import CorrectionConfig, LikelihoodConfig
@@ -153,6 +153,17 @@ class SlamParticles:
                                 self.fixed_travel, self.fixed_drift)
         return int(self.corrected.to_numpy().sum())
 
+    def loop_keyframes(self) -> dict[int, tuple[int, ...]]:
+        """The loop keyframes each particle that `correct` just moved was corrected toward
+        (read before the neighbours are selected again)."""
+        moved = np.flatnonzero(self.corrected.to_numpy())
+        if len(moved) == 0:
+            return {}
+        nb = self.nb.to_numpy()[moved]
+        loop = self.nb_loop.to_numpy()[moved] == 1
+        return {int(i): tuple(int(k) for k in row[m]) for i, row, m in zip(moved, nb, loop,
+                                                                           strict=True)}
+
     def weigh(self, num_src: int, cfg: LikelihoodConfig) -> None:
         """Frame log-likelihood of every particle, added to its cumulative log weight."""
         self._linearize(num_src, loop_only=False)
@@ -170,6 +181,48 @@ class SlamParticles:
                                        best.n, cfg.min_inliers, info,
                                        np.deg2rad(cfg.max_step_deg), cfg.max_step_m,
                                        self.q_cur, self.t_cur))
+
+    def spread(self, covariance: np.ndarray, num_src: int, points_weight: float,
+               min_inliers: int, refined: bool, corrected: bool,
+               rng: np.random.Generator) -> int:
+        """Give the particles a Gauss-Newton step moved (loop correction or refinement) back
+        the spread the step took: each draws δ ~ N(0, P) with P = (Σ⁻¹ + k H)⁻¹ the
+        Gaussian posterior of its step, Σ the prediction's `covariance` as prior and k H the
+        curvature of the tempered likelihood (k = points_weight / (rows · num_src), H the
+        GICP Hessian `weigh` just linearized against its neighbours), and moves by exp(δ).
+        A step lands every particle on the likelihood's mode; without this the cloud
+        collapses there and stops covering the truth. `refined` / `corrected`: whether
+        `refine` / `correct` ran on this scan. Returns how many particles drew."""
+        best = self.gicp.poses.best
+        groups = self.n * NEIGHBOURS
+        H = best.H.to_numpy()[:groups].reshape(self.n, NEIGHBOURS, 6, 6).astype(np.float64)
+        matched = np.maximum(best.n.to_numpy()[:groups].reshape(self.n, NEIGHBOURS), 0)
+        rows = (self.nb.to_numpy() >= 0) & (matched > 0)
+        enough = rows.any(axis=1) & (matched.sum(axis=1) >= min_inliers)
+        loop = (self.nb_loop.to_numpy() == 1).any(axis=1)
+        moves = np.zeros(self.n, bool)
+        if refined:
+            moves |= enough & ~loop
+        if corrected:
+            moves |= self.corrected.to_numpy() == 1
+        idx = np.flatnonzero(moves)
+        if len(idx) == 0:
+            return 0
+        k = points_weight / (np.maximum(rows[idx].sum(axis=1), 1) * num_src)
+        info = (np.linalg.inv(covariance + COVARIANCE_JITTER * np.eye(6))
+                + k[:, None, None] * np.einsum("ij,ijab->iab", rows[idx], H[idx]))
+        post = np.linalg.inv(info)
+        chol = np.linalg.cholesky(0.5 * (post + np.swapaxes(post, 1, 2))
+                                  + COVARIANCE_JITTER * np.eye(6))
+        delta = (chol @ rng.standard_normal((len(idx), 6, 1)))[..., 0]
+        poses = self.current_poses()[idx] @ se3_exp(delta)
+        q = self.q_cur.to_numpy()
+        t = self.t_cur.to_numpy()
+        q[idx] = rot_to_quat(poses[:, :3, :3])
+        t[idx] = poses[:, :3, 3]
+        self.q_cur.from_numpy(q.astype(np.float32))
+        self.t_cur.from_numpy(t.astype(np.float32))
+        return len(idx)
 
     def respawn(self, dead: np.ndarray, source: np.ndarray, log_w: np.ndarray) -> None:
         """Replace particles `dead` by copies of `source` and upload the new log weights."""

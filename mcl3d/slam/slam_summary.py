@@ -9,6 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from mcl3d.core.errors import Mcl3dError
+from mcl3d.core.geometry import se3_inverse
+from mcl3d.evaluation.consistency import Consistency, align_start, consistency
 from mcl3d.evaluation.metrics import evaluate
 from mcl3d.evaluation.run_plots import SLAM_PICTURE
 from mcl3d.io.logs.faults import LogFaults
@@ -20,6 +22,7 @@ from mcl3d.slam.monte_carlo_slam import STAGES, MonteCarloSlam
 MAX_LISTED_WARNINGS = 100  # the summary lists this many, and counts them all
 WARM_UP_FRAMES = 3  # the first scans include compiling each kernel: left out of the timings
 MIN_POSES_FOR_ALIGNMENT = 3  # an SE(3) alignment needs this many poses
+WRONG_LOOP_M = 2.0  # a loop is wrong when it places the scan this far from where it is
 
 
 @dataclass(frozen=True)
@@ -40,6 +43,21 @@ class SlamAccuracy:
         return {name: {"ate_m": ate.ate_m, "ate_deg": ate.ate_deg}
                 for name, ate in (("slam", self.slam), ("online", self.online),
                                   ("odometry", self.odometry))}
+
+
+@dataclass(frozen=True)
+class LoopCheck:
+    """The representative's loop corrections against the ground truth."""
+
+    accepted: int  # scans on which the representative took a loop correction
+    wrong: int  # ... that left its pose relative to a loop keyframe > WRONG_LOOP_M off the
+    # true relative pose (the scan matched to another row of trees, another floor)
+    worst_m: float  # the largest such error over the accepted scans
+    farthest_m: float  # the largest true distance between a loop keyframe and its scan
+
+    def as_dict(self) -> dict:
+        return {"accepted": self.accepted, "wrong": self.wrong, "worst_error_m": self.worst_m,
+                "farthest_keyframe_m": self.farthest_m, "wrong_if_off_by_m": WRONG_LOOP_M}
 
 
 @dataclass(frozen=True)
@@ -66,6 +84,10 @@ class SlamSummary:
     accuracy: SlamAccuracy | None  # None without ground truth
     accuracy_error: str | None = None  # why the accuracy could not be computed
     faults: LogFaults = field(default_factory=LogFaults)  # the log's messages dropped
+    # with ground truth: how often the truth lay inside the cloud's 95% region, and the
+    # representative's loop corrections that matched a keyframe truly elsewhere
+    consistency: Consistency | None = None
+    loop_check: LoopCheck | None = None
 
     def as_dict(self) -> dict:
         return {
@@ -80,6 +102,8 @@ class SlamSummary:
             "odometry_warnings": self.odometry_warnings,
             "num_odometry_warnings": self.num_odometry_warnings,
             "evaluation": evaluation_entry(self.accuracy, self.accuracy_error),
+            "consistency": None if self.consistency is None else self.consistency.as_dict(),
+            "loops": None if self.loop_check is None else self.loop_check.as_dict(),
             "faults": self.faults.as_dict()}
 
 
@@ -94,6 +118,7 @@ def summarize(slam: MonteCarloSlam, trajectories: dict[str, Trajectory],
     totals = np.array([sum(f.timings_ms.values()) for f in steady])
     warnings = [f"scan {i}: {w}" for i, f in enumerate(frames) for w in f.odometry_warnings]
     accuracy, accuracy_error = _evaluate(trajectories, gt)
+    cloud, loop_check = _check_against_truth(slam, gt)
     return SlamSummary(
         scans=len(frames), interrupted=interrupted, particles=slam.cfg.particles,
         keyframes=slam.particles.num_keyframes,
@@ -106,7 +131,39 @@ def summarize(slam: MonteCarloSlam, trajectories: dict[str, Trajectory],
         ms_per_frame=FrameTimesMs.of(totals), ms_per_stage=ms,
         particle_state_bytes=slam.particles.state_bytes(), notes=notes,
         odometry_warnings=warnings[:MAX_LISTED_WARNINGS], num_odometry_warnings=len(warnings),
-        accuracy=accuracy, accuracy_error=accuracy_error, faults=faults or LogFaults())
+        accuracy=accuracy, accuracy_error=accuracy_error, faults=faults or LogFaults(),
+        consistency=cloud, loop_check=loop_check)
+
+
+def _check_against_truth(slam: MonteCarloSlam, gt: Trajectory | None
+                         ) -> tuple[Consistency | None, LoopCheck | None]:
+    """The cloud's consistency over the scans the ground truth covers (aligned at the first
+    of them: SLAM's world is its first pose's frame), and the representative's loops."""
+    if gt is None:
+        return None, None
+    stamps_s = np.array([f.stamp_ns for f in slam.frames], np.int64) * 1e-9
+    covered = np.flatnonzero((stamps_s >= gt.stamps_s[0]) & (stamps_s <= gt.stamps_s[-1]))
+    if len(covered) < MIN_POSES_FOR_ALIGNMENT:
+        return None, None
+    frames = [slam.frames[i] for i in covered]
+    truth = align_start(gt.interpolate_poses(stamps_s[covered]), frames[0].T_mean)
+    cloud = consistency(np.stack([f.T_mean for f in frames]),
+                        np.stack([f.covariance for f in frames]), truth)
+    true_at = dict(zip(covered.tolist(), truth, strict=True))
+    accepted = wrong = 0
+    worst = farthest = 0.0
+    for i, f in enumerate(slam.frames):
+        kf_frames = [slam.keyframe_frames[k] for k in f.loop_keyframes]
+        if i not in true_at or not kf_frames or any(j not in true_at for j in kf_frames):
+            continue
+        true_rel = [se3_inverse(true_at[j]) @ true_at[i] for j in kf_frames]
+        off = max(float(np.linalg.norm((se3_inverse(T) @ E)[:3, 3]))
+                  for T, E in zip(true_rel, f.loop_relative, strict=True))
+        accepted += 1
+        wrong += off > WRONG_LOOP_M
+        worst = max(worst, off)
+        farthest = max(farthest, *(float(np.linalg.norm(T[:3, 3])) for T in true_rel))
+    return cloud, LoopCheck(accepted, wrong, worst, farthest)
 
 
 def _evaluate(trajectories: dict[str, Trajectory], gt: Trajectory | None
@@ -144,6 +201,13 @@ def summary_rows(summary: SlamSummary, backend: str, output_dir: Path,
             ("hypotheses at the end", f"{s.final_hypotheses} (ESS {s.final_ess:.0f})")]
     if s.elevator_frames:
         rows.append(("elevator", f"{s.elevator_frames} scans"))
+    if s.loop_check is not None:
+        rows.append(("loops vs truth", f"{s.loop_check.accepted} scans corrected by the "
+                     f"representative, {s.loop_check.wrong} wrong (> {WRONG_LOOP_M:.0f} m "
+                     "off the truth)"))
+    if s.consistency is not None:
+        rows.append(("consistency", f"truth inside the cloud's 95% region in "
+                     f"{100 * s.consistency.fraction:.1f}% of {s.consistency.scans} scans"))
     if s.accuracy is not None:
         for ate, label in ((s.accuracy.slam, "ATE SLAM"), (s.accuracy.online, "ATE online"),
                            (s.accuracy.odometry, "ATE odometry only")):

@@ -118,6 +118,11 @@ def test_slam_command_writes_every_output(forest_log, tmp_path, ti_runtime):
     assert summary["evaluation"]["slam"]["ate_m"] < 0.1
     lines = (out / "frames.csv").read_text().splitlines()
     assert len(lines) == 51 and lines[0].startswith("stamp_s,x,y,z")
+    assert "mean_qw" in lines[0] and "cov_rx_rx" in lines[0] and "cov_z_z" in lines[0]
+    cloud = summary["consistency"]  # the cloud's 95% region against the ground truth
+    assert cloud["scans"] == 50 and 0.0 <= cloud["fraction_95"] <= 1.0
+    assert summary["loops"]["accepted"] >= 0 and summary["loops"]["wrong"] == 0
+    assert "consistency" in result.output
     head = (out / "map.ply").read_bytes()[:200]
     count = int(head.split(b"element vertex ")[1].split(b"\n")[0])
     assert count > 1000
@@ -236,3 +241,99 @@ def test_slam_config_file_round_trips_in_its_sections(tmp_path):
         config_io.load(SlamConfig, path)
     with pytest.raises(ConfigError, match=r"keyframes\.voxel_m must be >= front_end"):
         config_io.load(SlamConfig, None, {"keyframes.voxel_m": 0.1})
+
+
+def test_slam_preset_paper_and_an_unknown_preset(forest_log, tmp_path, ti_runtime):
+    """--preset paper runs the paper's settings (saved in slam_config.yaml), flags still win;
+    an unknown preset is one error naming the choices, before anything is written."""
+    import yaml
+
+    from mcl3d.core.errors import ConfigError
+
+    out = tmp_path / "paper"
+    result = CliRunner().invoke(app, ["slam", str(forest_log), "-o", str(out), "--particles",
+                                      "100", "--max-scans", "15", "--preset", "paper"])
+    assert result.exit_code == 0, result.output
+    saved = yaml.safe_load((out / "slam_config.yaml").read_text())
+    assert saved["particles"] == 100
+    assert saved["correction"]["refine_without_loop"] is False
+    assert saved["loop_closure"]["facing_gate"] is False
+    assert saved["prediction_noise"]["odometry_scale"] == 1.0
+    bad = tmp_path / "bad"
+    result = CliRunner().invoke(app, ["slam", str(forest_log), "-o", str(bad), "--preset",
+                                      "nope"])
+    assert isinstance(result.exception, ConfigError)
+    assert "default, paper" in str(result.exception) and not bad.exists()
+
+
+def test_presets_apply_under_a_config_file(tmp_path):
+    from mcl3d.core import config as config_io
+    from mcl3d.slam.presets import PRESETS, preset
+    from mcl3d.slam.slam_config import SlamConfig
+
+    path = tmp_path / "c.yaml"
+    path.write_text("correction:\n  min_inliers: 50\n")
+    cfg = config_io.load(SlamConfig, path, {"seed": 2}, preset=preset("paper"))
+    assert cfg.correction.min_inliers == 50 and cfg.seed == 2  # the file and flags win
+    assert cfg.correction.refine_without_loop is False  # the preset's, where the file is silent
+    assert config_io.load(SlamConfig, None, preset=preset(None)) == SlamConfig()
+    for name in PRESETS:  # every preset builds a valid config
+        config_io.load(SlamConfig, None, preset=preset(name))
+
+
+def test_spread_draws_from_the_steps_gaussian_posterior(ti_runtime):
+    """After a step, each moved particle draws δ ~ N(0, (Σ⁻¹ + k H)⁻¹): the sample covariance
+    of the cloud matches that posterior; particles with too few inliers or a loop (when only
+    refinement ran) do not move."""
+    from mcl3d.registration.batch_gicp import BatchGicp
+    from mcl3d.registration.gaussian_voxels import GaussianVoxelMaps
+    from mcl3d.slam.slam_particles import SlamParticles
+
+    n, num_src, weight = 6000, 100, 30.0
+    maps = GaussianVoxelMaps(max_maps=2, buckets_per_map=64, max_points=64)
+    gicp = BatchGicp(maps, max_groups=3 * n, max_rows=3 * n, max_source_points=num_src)
+    p = SlamParticles(n, 2, gicp, seed=0)
+    rng = np.random.default_rng(0)
+    A = rng.standard_normal((6, 6))
+    H_row = A @ A.T * 2e3 + np.diag([4e4, 4e4, 4e4, 1e4, 1e4, 1e4])
+    H = np.zeros((3 * n, 6, 6), np.float32)
+    H[0::3] = H_row  # one neighbour row per particle
+    matched = np.zeros(3 * n, np.int32)
+    matched[0::3] = 80
+    matched[3 * (n - 1)] = 5  # the last particle sees too little to move
+    gicp.poses.best.H.from_numpy(H)
+    gicp.poses.best.n.from_numpy(matched)
+    nb = np.full((n, 3), -1, np.int32)
+    nb[:, 0] = 0
+    p.nb.from_numpy(nb)
+    loop = np.zeros((n, 3), np.int32)
+    loop[n - 2, 0] = 1  # a looping particle: refinement did not move it
+    p.nb_loop.from_numpy(loop)
+    cov = np.diag(np.r_[np.full(3, 1e-3**2), np.full(3, 0.01**2)])
+    moved = p.spread(cov, num_src, weight, 30, refined=True, corrected=False,
+                     rng=np.random.default_rng(1))
+    assert moved == n - 2
+    xi = geometry.se3_log(p.current_poses())
+    np.testing.assert_allclose(xi[n - 2:], 0.0, atol=1e-7)
+    post = np.linalg.inv(np.linalg.inv(cov) + weight / num_src * H_row)
+    sample = np.cov(xi[:n - 2].T)
+    np.testing.assert_allclose(np.sqrt(np.diag(sample)), np.sqrt(np.diag(post)), rtol=0.05)
+    assert abs(sample[0, 1] / np.sqrt(sample[0, 0] * sample[1, 1])
+               - post[0, 1] / np.sqrt(post[0, 0] * post[1, 1])) < 0.05
+
+
+def test_a_run_that_fills_every_keyframe_goes_on_and_says_so(forest_log, tmp_path, ti_runtime):
+    """A walk longer than keyframes.capacity allows keeps tracking against the keyframes it
+    has, with one warning naming the setting, instead of ending the run."""
+    import json
+
+    config = tmp_path / "small.yaml"
+    config.write_text("keyframes:\n  capacity: 2\n  overlap: 0.99\n")
+    out = tmp_path / "out"
+    result = CliRunner().invoke(app, ["slam", str(forest_log), "-o", str(out), "--particles",
+                                      "100", "--seed", "3", "--config", str(config)])
+    assert result.exit_code == 0, result.output
+    summary = json.loads((out / "slam_summary.json").read_text())
+    assert summary["keyframes"] == 2 and summary["scans"] == 50
+    full = [w for w in summary["odometry_warnings"] if "keyframes.capacity" in w]
+    assert len(full) == 1, summary["odometry_warnings"]
