@@ -59,13 +59,17 @@ class Recovery:
 
     def scan_disagrees(self, match_ratio: float, mean_ll: float) -> bool:
         """This scan alone is as far below the healthy level as the fast averages must fall
-        to be lost: a `converged` claim is withheld for it (a kidnap onto a look-alike place
-        shows in the first scan; re-seeding still waits for the averages)."""
+        to be lost, or the fast averages are halfway there: a `converged` claim is withheld
+        (a kidnap onto a look-alike place shows in the first scan after it; re-seeding
+        still waits for the averages)."""
         if self._slow is None or not self._healthy:
             return False
         r = self.cfg
+        halfway_match = 0.5 * (1.0 + r.drop_ratio) * self._slow[0]
         return bool(match_ratio < r.drop_ratio * self._slow[0]
-                    or mean_ll < self._slow[1] - r.ll_drop)
+                    or mean_ll < self._slow[1] - r.ll_drop
+                    or self._fast[0] < halfway_match
+                    or self._fast[1] < self._slow[1] - 0.5 * r.ll_drop)
 
     def action(self, lost: bool) -> Reseed:
         """The re-seeding to do now: "" (none yet), "expansion" or "global"."""
