@@ -79,7 +79,6 @@ class Localizer:
         self.step_index = 0
         self.ever_converged = False
         self.last_sample_positions = np.zeros((0, 3), np.float32)  # for visualization
-        self.last_rival_gap = -np.inf  # nats, see _rival_explains_scans
         self.search = GlobalSearch(config)
         self.recovery = Recovery(config.recovery)
         self.evidence = PlaceEvidence()
@@ -290,14 +289,13 @@ class Localizer:
         return estimate, FilterState.INITIALIZING
 
     def _rival_explains_scans(self, cloud: WeightedParticles, estimate: PoseEstimate) -> bool:
-        """Whether a particle away from the dominant cluster has a lineage that explains
-        the scans within `rival_margin_nats` of the dominant's best (see `evidence`)."""
+        """Whether a place away from the dominant cluster explains the scans within the
+        sampling noise (or `rival_margin_nats`) of the dominant's best (see `evidence`)."""
         e = self.cfg.estimate
         if e.rival_margin_nats <= 0 or self._places is None:
             return False
         gap = rival_gap(cloud.positions, cloud.quats_xyzw, self.evidence.log_l,
                         estimate.T_map_lidar, 2 * e.cluster_radius_m, 2 * e.cluster_angle_rad)
-        self.last_rival_gap = gap
         live = max(self.search.live_places, 2)
         return gap > -max(e.rival_margin_nats, self.evidence.noise_margin(live))
 
