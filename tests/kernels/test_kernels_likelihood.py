@@ -3,6 +3,7 @@ unknown, observed-free and outside-the-map cases."""
 
 import numpy as np
 import pytest
+from support.floor_map import FLOOR_Z, TRUNC, VOX, floor_map
 
 from mcl3d.core import geometry
 from mcl3d.localization.sensor_model import (
@@ -12,31 +13,6 @@ from mcl3d.localization.sensor_model import (
     point_log_likelihood_numpy,
     scan_log_likelihood_numpy,
 )
-
-VOX = 0.1
-TRUNC = 0.3
-FLOOR_Z = 0.85
-
-
-def tiny_map():
-    """2x2x2 blocks of 8^3 voxels (1.6 m cube): a floor plane at z = 0.85 in blocks
-    (0|1, 0|1, 0|1) except block (1, 1, 1), which is FREE; block (1, 1, 0) is unknown; in
-    block (0, 0, 0) the voxels with i == 0 were never observed."""
-    from mcl3d.maps.tsdf import MapGeometry, TsdfMap
-
-    geometry_ = MapGeometry(VOX, TRUNC, (0.0, 0.0, 0.0), (2, 2, 2))
-    tsdf = TsdfMap(geometry_, 8)
-    coords = np.array([[i, j, k] for i in range(2) for j in range(2) for k in range(2)
-                       if (i, j, k) not in ((1, 1, 1), (1, 1, 0))], np.int32)
-    tsdf.mark_free(np.array([[1, 1, 1]], np.int32))
-    tsdf.allocate(coords)
-    z = (coords[:, 2, None, None, None] * 8 + np.arange(8)[None, None, None, :] + 0.5) * VOX
-    sdf = np.clip(np.broadcast_to(z - FLOOR_Z, (len(coords), 8, 8, 8)), -TRUNC, TRUNC).copy()
-    weight = np.ones_like(sdf)
-    first = np.flatnonzero((coords == 0).all(axis=1))[0]
-    sdf[first, 0], weight[first, 0] = TRUNC, 0.0
-    tsdf.write_blocks(coords, sdf.astype(np.float32), weight.astype(np.float32))
-    return tsdf
 
 
 def code_map(tsdf, cfg):
@@ -78,7 +54,7 @@ def run_kernel(tsdf, positions, quats, points, cfg, cache_block):
 
 @pytest.mark.parametrize("cache_block", [False, True])
 def test_kernel_matches_numpy_twin(ti_runtime, cache_block):
-    tsdf = tiny_map()
+    tsdf = floor_map()
     host = NumpyTsdf.of(tsdf)
     cfg = SensorModelConfig(sigma_m=0.05, effective_points=4.0)
     rng = np.random.default_rng(0)
@@ -101,7 +77,7 @@ def test_codes_match_the_model_at_every_voxel(ti_runtime):
     match flag at that voxel; unallocated cells point at the constant blocks."""
     from mcl3d.kernels.likelihood import MATCH_BIT
 
-    tsdf = tiny_map()
+    tsdf = floor_map()
     host = NumpyTsdf.of(tsdf)
     cfg = SensorModelConfig(sigma_m=0.05, match_dist_m=0.12)
     codes, slots = code_map(tsdf, cfg)
@@ -150,7 +126,7 @@ def test_locality_keys_match_numpy(ti_runtime):
 
 def test_point_cases(ti_runtime):
     """One particle at the identity, one point per case, checked against the model."""
-    tsdf = tiny_map()
+    tsdf = floor_map()
     cfg = SensorModelConfig(sigma_m=0.05, effective_points=1.0)
     cases = {
         "surface": ([1.05, 0.45, FLOOR_Z + 0.01], None),
@@ -219,7 +195,7 @@ def coarse_case(max_dist_m=0.45):
     from mcl3d.localization.sensor_model import coarse_field
 
     cfg = SensorModelConfig(coarse_cell_m=VOX, coarse_max_dist_m=max_dist_m, match_dist_m=0.12)
-    return cfg, coarse_field(tiny_map(), cfg)
+    return cfg, coarse_field(floor_map(), cfg)
 
 
 def test_coarse_field_is_the_distance_to_the_nearest_surface_cell(ti_runtime):

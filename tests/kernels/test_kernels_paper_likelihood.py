@@ -2,6 +2,7 @@
 NumPy twin and against numbers computed by hand on a tiny map."""
 
 import numpy as np
+from support.floor_map import TRUNC, floor_map
 
 from mcl3d.core import geometry
 from mcl3d.localization.sensor_model import (
@@ -11,30 +12,7 @@ from mcl3d.localization.sensor_model import (
     paper_value,
 )
 
-VOX = 0.1
-TRUNC = 0.3
-FLOOR_Z = 0.85
 SIGMA = 0.1
-
-
-def tiny_map():
-    """2x2x2 blocks of 8^3 voxels: a floor plane at z = 0.85 in six blocks, block (1, 1, 1)
-    FREE, block (1, 1, 0) unknown, and in block (0, 0, 0) the voxels with i == 0 never
-    observed (they hold +truncation, the map's invariant)."""
-    from mcl3d.maps.tsdf import MapGeometry, TsdfMap
-
-    tsdf = TsdfMap(MapGeometry(VOX, TRUNC, (0.0, 0.0, 0.0), (2, 2, 2)), 8)
-    coords = np.array([[i, j, k] for i in range(2) for j in range(2) for k in range(2)
-                       if (i, j, k) not in ((1, 1, 1), (1, 1, 0))], np.int32)
-    tsdf.mark_free(np.array([[1, 1, 1]], np.int32))
-    tsdf.allocate(coords)
-    z = (coords[:, 2, None, None, None] * 8 + np.arange(8)[None, None, None, :] + 0.5) * VOX
-    sdf = np.clip(np.broadcast_to(z - FLOOR_Z, (len(coords), 8, 8, 8)), -TRUNC, TRUNC).copy()
-    weight = np.ones_like(sdf)
-    first = np.flatnonzero((coords == 0).all(axis=1))[0]
-    sdf[first, 0], weight[first, 0] = TRUNC, 0.0
-    tsdf.write_blocks(coords, sdf.astype(np.float32), weight.astype(np.float32))
-    return tsdf
 
 
 def run_kernel(tsdf, positions, quats, points, cfg):
@@ -67,7 +45,7 @@ def run_kernel(tsdf, positions, quats, points, cfg):
 
 def test_paper_kernel_matches_numpy_twin(ti_runtime):
     """Random poses over the whole map (the floor, the FREE and unknown blocks, outside)."""
-    tsdf = tiny_map()
+    tsdf = floor_map()
     cfg = SensorModelConfig(model="paper", sigma_m=SIGMA)
     rng = np.random.default_rng(0)
     n, m = 41, 29
@@ -90,7 +68,7 @@ def test_paper_model_by_hand():
     np.testing.assert_allclose(paper_value(0.0, cfg, TRUNC, SIGMA), peak)
     np.testing.assert_allclose(paper_value(-0.1, cfg, TRUNC, SIGMA), peak * np.exp(-0.5))
     np.testing.assert_allclose(paper_value(5.0, cfg, TRUNC, SIGMA), peak * np.exp(-4.5))
-    host = NumpyTsdf.of(tiny_map())
+    host = NumpyTsdf.of(floor_map())
     identity = np.array([[0.0, 0.0, 0.0, 1.0]])
     z = 0.85 + 0.02  # between the centres at 0.85 (d = 0) and 0.95 (d = 0.1), 0.2 / 0.8
     points = np.array([[0.55, 0.55, z], [-5.0, 0.5, 0.5]])
