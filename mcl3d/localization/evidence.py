@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mcl3d.core import geometry
+from mcl3d.localization.estimate import label_particles
 
 CELL_BITS = 18  # per position axis of the place key (2^18 cells of place_cell_m)
 
@@ -119,12 +119,9 @@ def rival_gap(positions: np.ndarray, quats_xyzw: np.ndarray, log_l: np.ndarray,
     is near the dominant pose, +inf when none is close to it."""
     if len(log_l) != len(positions) or not len(log_l):
         return -np.inf
-    dist = np.linalg.norm(positions - T_dominant[:3, 3], axis=1)
-    q_dom = geometry.rot_to_quat(T_dominant[:3, :3])
-    dot = np.clip(np.abs(np.asarray(quats_xyzw, np.float64) @ q_dom), 0.0, 1.0)
-    angle = 2.0 * np.arccos(dot)
-    inside = (dist <= 0.5 * radius_m) & (angle <= 0.5 * angle_rad)
-    away = (dist > radius_m) | (angle > angle_rad)
+    inside = label_particles(positions, quats_xyzw, [T_dominant], 0.5 * radius_m,
+                             0.5 * angle_rad) == 0
+    away = label_particles(positions, quats_xyzw, [T_dominant], radius_m, angle_rad) < 0
     if not away.any():
         return -np.inf
     best_inside = log_l[inside].max() if inside.any() else -np.inf
