@@ -1,5 +1,9 @@
 """The `mcl3d` command line: parses, calls one pipeline, prints a Rich summary.
 
+This file holds the app and the commands that estimate poses or build maps; the commands
+around them (info, eval, simulate, map-info, demo, backends) are in `mcl3d/cli_tools.py` and
+the options they share in `mcl3d/cli_options.py`.
+
 Heavy imports (taichi, open3d, mcap) happen inside the commands so `mcl3d --help` is instant.
 Library errors (`Mcl3dError`) become one red line on stderr and exit code 1; usage errors
 exit 2; Ctrl-C exits 130 after the running command has kept what it finished.
@@ -13,12 +17,16 @@ from typing import Annotated
 
 import typer
 
-from mcl3d import __version__
-from mcl3d.core.errors import Mcl3dError, RunInterrupted
-
-BACKEND_HELP = (
-    "Compute backend: auto (cuda, then a hardware Vulkan GPU, then cpu), cuda, vulkan or cpu."
+from mcl3d import __version__, cli_tools
+from mcl3d.cli_options import (
+    BACKEND_HELP,
+    BackendOption,
+    Globals,
+    check_backend,
+    init_backend,
+    print_notes,
 )
+from mcl3d.core.errors import Mcl3dError, RunInterrupted
 
 
 class _App(typer.Typer):
@@ -59,218 +67,27 @@ app = _App(
 )
 
 
-class _Globals:
-    backend: str = "auto"
-
-
 def _version(value: bool) -> None:
     if value:
         typer.echo(f"mcl3d {__version__}")
         raise typer.Exit()
 
 
-def _check_backend(value: str | None) -> str | None:
-    from mcl3d.core.runtime import BACKENDS
-
-    if value is not None and value not in BACKENDS:
-        raise typer.BadParameter(f"{value!r} is not one of {', '.join(BACKENDS)}")
-    return value
-
-
-BackendOption = Annotated[
-    str | None,
-    typer.Option("--backend", help=BACKEND_HELP + " Overrides the global --backend.",
-                 callback=_check_backend, show_default=False),
-]
-
-
 @app.callback()
 def main(
     backend: Annotated[
-        str, typer.Option("--backend", help=BACKEND_HELP, callback=_check_backend)
+        str, typer.Option("--backend", help=BACKEND_HELP, callback=check_backend)
     ] = "auto",
     version: Annotated[
         bool, typer.Option("--version", help="Print the version and exit.", callback=_version,
                            is_eager=True)
     ] = False,
 ) -> None:
-    _Globals.backend = backend
+    Globals.backend = backend
 
 
-def _init_backend(backend: str | None):
-    """Start the compute runtime on the command's --backend, else the global one."""
-    from mcl3d.core import runtime
-
-    return runtime.init(backend or _Globals.backend)
-
-
-@app.command()
-def backends(backend: BackendOption = None) -> None:
-    """List the compute backends on this machine and start the selected one."""
-    from mcl3d.console import console, summary_table
-    from mcl3d.core.vulkan_probe import vulkan_devices
-
-    devices = vulkan_devices()
-    vulkan_text = ", ".join(f"{d.name} ({d.device_type})" for d in devices) or "no Vulkan driver"
-    info = _init_backend(backend)
-    console.print(summary_table("Compute backends", [
-        ("vulkan devices", vulkan_text),
-        ("requested", info.requested),
-        ("running", f"{info.backend} on {info.device}"),
-    ]))
-
-
-def _one_of(allowed: tuple[str, ...]):
-    """A Typer callback that accepts only `allowed` values (usage error, exit 2, otherwise)."""
-
-    def check(value: str) -> str:
-        if value not in allowed:
-            raise typer.BadParameter(f"{value!r} is not one of {', '.join(allowed)}")
-        return value
-
-    return check
-
-
-@app.command("eval")
-def eval_trajectory(
-    est: Annotated[Path, typer.Argument(
-        help="Estimated trajectory: TUM (t x y z qx qy qz qw) or KITTI (12 numbers), by content.",
-        show_default=False)],
-    ref: Annotated[Path, typer.Option(
-        "--ref", help="Reference (ground-truth) trajectory, TUM or KITTI.", show_default=False)],
-    align: Annotated[str, typer.Option(
-        "--align", callback=_one_of(("se3", "sim3", "origin", "none")),
-        help="Alignment of the estimate before the errors: se3 or sim3 (Umeyama over all "
-             "associated positions; sim3 also fits the scale), origin (first poses coincide) "
-             "or none (same as evo without -a).")] = "none",
-    t_max_diff: Annotated[float, typer.Option(
-        "--t-max-diff", min=0.0,
-        help="Largest stamp difference in seconds for pairing poses (as evo's --t_max_diff).")
-    ] = 0.01,
-    rpe_delta: Annotated[float, typer.Option(
-        "--rpe-delta", help="RPE pose-pair spacing, in --rpe-unit.")] = 1.0,
-    rpe_unit: Annotated[str, typer.Option(
-        "--rpe-unit", callback=_one_of(("m", "frames")),
-        help="RPE spacing unit: m (travelled distance) or frames.")] = "m",
-    rpe_all_pairs: Annotated[bool, typer.Option(
-        "--rpe-all-pairs", help="Use every pose as an RPE pair start, not consecutive pairs.")
-    ] = False,
-    plot: Annotated[Path | None, typer.Option(
-        "--plot", help="Write a figure (.png, .pdf or .svg): top view of both trajectories "
-                       "and the ATE over time.", show_default=False)] = None,
-    json_path: Annotated[Path | None, typer.Option(
-        "--json", help="Write the numbers as JSON.", show_default=False)] = None,
-    force: Annotated[bool, typer.Option("--force", help="Overwrite existing outputs.")] = False,
-) -> None:
-    """Accuracy of a trajectory against a reference: ATE and RPE, with evo's numbers."""
-    import json
-
-    from mcl3d.console import console, evaluation_tables
-    from mcl3d.core.outputs import check_writable, write_text_atomic
-    from mcl3d.evaluation.metrics import evaluate, read_pair
-    from mcl3d.evaluation.plots import plot_evaluation, plot_format
-
-    for path in (plot, json_path):
-        if path is not None:
-            check_writable(path, force)
-    if plot is not None:
-        plot_format(plot)
-    reference, estimate = read_pair(ref, est)
-    result = evaluate(reference, estimate, alignment=align, max_diff_s=t_max_diff,
-                      rpe_delta=rpe_delta, rpe_unit=rpe_unit, all_pairs=rpe_all_pairs,
-                      ref_name=str(ref), est_name=str(est))
-    if plot is not None:
-        plot_evaluation(plot, result, reference, estimate, ref_label=ref.name,
-                        est_label=est.name)
-    if json_path is not None:
-        numbers = {"reference": str(ref), "estimate": str(est), **result.as_dict()}
-        write_text_atomic(json_path, json.dumps(numbers, indent=2) + "\n")
-    for table in evaluation_tables(result, ref, est, plot, json_path):
-        console.print(table)
-
-
-# Topic overrides shared by every command that reads a log (CONVENTIONS §3).
-PointsTopicOption = Annotated[str | None, typer.Option(
-    "--points-topic", help="PointCloud2 topic (default: the only one in the log).")]
-ImuTopicOption = Annotated[str | None, typer.Option(
-    "--imu-topic", help="Imu topic (default: the only one in the log).")]
-OdomTopicOption = Annotated[str | None, typer.Option(
-    "--odom-topic", help="Odometry topic (default: the only one not named like ground truth).")]
-GtTopicOption = Annotated[str | None, typer.Option(
-    "--gt-topic", help="Ground-truth pose topic (default: the one named ground_truth, "
-                       "groundtruth or gt).")]
-JsonOption = Annotated[bool, typer.Option("--json", help="Print the facts as one JSON document "
-                                          "instead (keys: docs/json-output.md).")]
-
-
-@app.command()
-def info(
-    log: Annotated[Path, typer.Argument(help="MCAP file, ROS 1 .bag file, ROS 2 bag folder or "
-                                        "KITTI sequence folder.", metavar="LOG",
-                                        show_default=False)],
-    points_topic: PointsTopicOption = None,
-    imu_topic: ImuTopicOption = None,
-    odom_topic: OdomTopicOption = None,
-    gt_topic: GtTopicOption = None,
-    scans: Annotated[int, typer.Option(min=1, help="Scans decoded per cloud topic for the "
-                                       "point statistics.")] = 3,
-    as_json: JsonOption = False,
-) -> None:
-    """Describe a log like `ros2 bag info`: topics, types, counts, rates, frames, cloud layout."""
-    from mcl3d.console import log_info_json, log_info_tables, print_json, print_tables
-    from mcl3d.io.logs.info import log_info
-
-    result = log_info(log, max_scans=scans, points_topic=points_topic, imu_topic=imu_topic,
-                      odom_topic=odom_topic, gt_topic=gt_topic)
-    if as_json:
-        print_json(log_info_json(result))
-    else:
-        print_tables(log_info_tables(result))
-
-
-@app.command()
-def simulate(
-    world: Annotated[str, typer.Argument(
-        help="World: office (rooms + ramps), building (floors + elevator), forest (tree rows), "
-             "arena (symmetric hall) or warehouse (rack aisles + ramp).", show_default=False)],
-    output: Annotated[Path, typer.Option(
-        "-o", "--output", help="The ROS 2 MCAP log to write; NAME_gt.tum (ground truth) and "
-                               "NAME_config.yaml (effective config) go beside it.",
-        show_default=False)],
-    sensor: Annotated[str | None, typer.Option(
-        "--sensor", help="LiDAR: vlp16, os0-64, os1-64 or mid360 (default: mid360 for "
-                         "paper-forest, else vlp16).", show_default=False)] = None,
-    trajectory: Annotated[str, typer.Option(
-        "--trajectory", help="ground, loop, handheld, drone (forest, arena), elevator "
-                             "(building), kidnap, paper-forest (forest) or paper-elevator "
-                             "(building).")] = "ground",
-    duration: Annotated[float | None, typer.Option(
-        "--duration", help="Seconds to simulate (default: the route's own length for "
-                           "paper-forest and paper-elevator, else 10).",
-        show_default=False)] = None,
-    seed: Annotated[int, typer.Option("--seed", help="Seed of the world, the path and every "
-                                      "noise: same seed, same bytes.")] = 0,
-    config: Annotated[Path | None, typer.Option(
-        "--config", help="YAML/TOML with sections world, lidar, imu, odometry, map (the "
-                         "saved _config.yaml lists every key).", show_default=False)] = None,
-    export_mesh: Annotated[Path | None, typer.Option(
-        "--export-mesh", help="Also write the world's triangle mesh (.ply).",
-        show_default=False)] = None,
-    export_map: Annotated[Path | None, typer.Option(
-        "--export-map", help="Also write a prior point-cloud map sampled on the surfaces (.ply).",
-        show_default=False)] = None,
-    force: Annotated[bool, typer.Option("--force", help="Overwrite existing outputs.")] = False,
-) -> None:
-    """Simulate a LiDAR, IMU, odometry and ground truth in a world, as a ROS 2 MCAP log."""
-    from mcl3d.console import ProgressBars, console, summary_table
-    from mcl3d.sim.pipeline import SimulateRequest, run, summary_rows
-
-    with ProgressBars() as bars:
-        result = run(SimulateRequest(world=world, sensor=sensor, trajectory=trajectory,
-                                     duration_s=duration, seed=seed, output=output,
-                                     config_path=config, export_mesh=export_mesh,
-                                     export_map=export_map, force=force), bars.on_progress)
-    console.print(summary_table("Simulation", summary_rows(result)))
+for _name, _command in cli_tools.COMMANDS:
+    app.command(_name)(_command)
 
 
 @app.command("build-map")
@@ -325,7 +142,7 @@ def build_map(
     settings = cfg.load(BuildConfig, config, {
         "voxel_size_m": voxel_size, "truncation_m": truncation, "normals": normals,
         "max_range_m": max_range, "max_capacity_blocks": capacity_blocks})
-    info = _init_backend(backend)
+    info = init_backend(backend)
     request = BuildMapRequest(source, output, settings, trajectory=trajectory, f16=f16,
                               force=force, export_mesh=export_mesh,
                               export_points=export_points, points_topic=points_topic,
@@ -333,31 +150,7 @@ def build_map(
     with ProgressBars() as bars:
         result = run(request, bars.on_progress)
     console.print(summary_table("Map built", summary_rows(result, info.backend)))
-    _print_notes([], [], 0, result.faults.warnings())
-
-
-@app.command("map-info")
-def map_info(
-    map_file: Annotated[Path, typer.Argument(help="A map file written by build-map (.tsdf).")],
-    export_mesh: Annotated[Path | None, typer.Option(
-        "--export-mesh", help="Write the zero level set as a mesh (.ply/.obj/.stl).",
-        show_default=False)] = None,
-    export_points: Annotated[Path | None, typer.Option(
-        "--export-points", help="Write the surface voxels as points (.ply/.pcd).",
-        show_default=False)] = None,
-    force: Annotated[bool, typer.Option("--force", help="Overwrite existing outputs.")] = False,
-    as_json: JsonOption = False,
-) -> None:
-    """Print a map's header and statistics; optionally export it for viewers."""
-    from mcl3d.console import map_info_table, print_json, print_tables
-    from mcl3d.mapping.map_info import map_info as read_map_info
-
-    result = read_map_info(map_file, export_mesh=export_mesh, export_points=export_points,
-                           force=force)
-    if as_json:
-        print_json(result.as_dict())
-    else:
-        print_tables([map_info_table(result)])
+    print_notes([], [], 0, result.faults.warnings())
 
 
 # ------------------------------------------------------------------------ localize
@@ -444,7 +237,7 @@ def localize(
     overrides = _localize_overrides(init, init_std, particles, min_particles, max_particles,
                                     points, seed, height_band, motion, max_scans)
     cfg = config_mod.load(LocalizeConfig, config, overrides, preset=localize_preset(preset))
-    info = _init_backend(backend)
+    info = init_backend(backend)
     request = LocalizeRequest(log=log, map=map_file, output_dir=out, config=cfg, preset=preset,
                               topics=Topics(points_topic, imu_topic, odom_topic, gt_topic),
                               force=force, result_mcap=result_mcap, backend=info.requested)
@@ -452,34 +245,7 @@ def localize(
         result = run(request, on_progress=bars.on_progress)
     s = result.summary
     console.print(summary_table("Localization", summary_rows(s, out)))
-    _print_notes([], s.warnings, len(s.warnings), s.faults.warnings())
-
-
-@app.command()
-def demo(
-    root: Annotated[Path, typer.Option(
-        "-o", "--output", help="Folder for the demo runs; each run gets a new timestamped "
-                               "subfolder and `latest` points at it.")] = Path("demo"),
-    seed: Annotated[int, typer.Option("--seed", help="Seed of the simulated log and of the "
-                                               "particle filter.")] = 0,
-    duration: Annotated[float, typer.Option(help="Seconds of log to simulate.")] = 8.0,
-    particles: Annotated[int, typer.Option(help="Particles for global localization.")] = 100_000,
-    points: Annotated[int | None, typer.Option(
-        help="Scan points per update (default 256).")] = None,
-    backend: BackendOption = None,
-) -> None:
-    """Run the chain on built-in demo data: simulate an office log, inspect it, map it,
-    localize it globally in its map and compare with the ground truth."""
-    from mcl3d.console import console
-    from mcl3d.demo import DemoRequest, steps
-
-    request = DemoRequest(root=root, seed=seed, duration_s=duration, particles=particles,
-                          points=points, backend=backend or _Globals.backend)
-    for number, step in enumerate(steps(request), start=1):
-        console.rule(f"[bold]{number}. {step.title}")
-        console.print(f"[dim]$ {step.command}")
-        for renderable in step.output:
-            console.print(renderable)
+    print_notes([], s.warnings, len(s.warnings), s.faults.warnings())
 
 
 @app.command()
@@ -516,7 +282,7 @@ def odometry(
     from mcl3d.odometry.odometry_summary import summary_rows
     from mcl3d.odometry.pipeline import OdometryRequest, run
 
-    info = _init_backend(backend)
+    info = init_backend(backend)
     overrides = {"voxel_size_m": voxel_size, "map_voxel_size_m": map_voxel_size,
                  "keyframe_overlap": keyframe_overlap,
                  "use_imu": False if no_imu else None, "deskew": False if no_deskew else None}
@@ -528,20 +294,7 @@ def odometry(
     s = result.summary
     console.print(summary_table("Odometry", summary_rows(s, f"{info.backend} ({info.device})",
                                                           out)))
-    _print_notes(s.notes, s.warnings, s.num_warnings, s.faults.warnings())
-
-
-def _print_notes(notes: list[str], warnings: list[str], num_warnings: int,
-                 faults: list[str]) -> None:
-    """A run's notes, its messages dropped for faults (a line per kind) and first warnings."""
-    from mcl3d.console import console
-
-    for note in notes:
-        console.print(f"[yellow]note:[/] {note}")
-    for w in [*faults, *warnings[:5]]:
-        console.print(f"[yellow]warning:[/] {w}")
-    if num_warnings > 5:
-        console.print(f"[yellow]... {num_warnings - 5} more warnings in the summary[/]")
+    print_notes(s.notes, s.warnings, s.num_warnings, s.faults.warnings())
 
 
 @app.command()
@@ -585,7 +338,7 @@ def slam(
     overrides = {"particles": particles, "front_end.fov_deg": fov, "seed": seed,
                  "odometry.use_imu": False if no_imu else None}
     cfg = config_io.load(SlamConfig, config, overrides, preset=slam_preset(preset))
-    info = _init_backend(backend)
+    info = init_backend(backend)
     with ProgressBars() as bars:
         result = run(SlamRequest(log=log, output_dir=out, config=cfg, force=force,
                                  points_topic=points_topic, imu_topic=imu_topic,
@@ -594,4 +347,4 @@ def slam(
     rows = summary_rows(result.summary, f"{info.backend} ({info.device})", out,
                         result.tsdf.path if result.tsdf else None)
     console.print(summary_table("Monte Carlo SLAM", rows))
-    _print_notes(result.summary.notes, [], 0, result.summary.faults.warnings())
+    print_notes(result.summary.notes, [], 0, result.summary.faults.warnings())
