@@ -301,7 +301,8 @@ def main() -> None:
     args = parser.parse_args()
 
     from mcl3d.core import runtime
-    from mcl3d.maps.build import BuildConfig, _mesh_scene, estimate_normals
+    from mcl3d.maps.build import SENSOR_ORIGIN, BuildConfig, _mesh_scene
+    from mcl3d.maps.normals import oriented_normals
     from mcl3d.maps.tsdf import MapGeometry
 
     info = runtime.init(args.backend)
@@ -312,10 +313,14 @@ def main() -> None:
     T[:3, 3] = [route[0][0], route[0][1], world.floor_z_m[0] + 0.8]
     points = _scan(scene, T)
     geometry = MapGeometry.around(vertices.min(0), vertices.max(0), VOXEL, 4 * VOXEL, 0.4)
-    k = BuildConfig().normal_neighbors
-    normals = estimate_normals(points, k, np.zeros((1, 3)))
-    normals_ms = _median_ms(lambda: estimate_normals(points, k, np.zeros((1, 3))),
-                            args.repeats)[0]
+    build = BuildConfig()
+
+    def scan_normals():
+        return oriented_normals(points, build.normal_neighbors, SENSOR_ORIGIN,
+                                build.orientation_cell_m)
+
+    normals = scan_normals()
+    normals_ms = _median_ms(scan_normals, args.repeats)[0]
     methods = {
         "point_to_plane": _Ours(points, T, geometry, normals, "knn"),
         "projective": _Ours(points, T, geometry, None, "none"),

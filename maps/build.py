@@ -23,13 +23,18 @@ from mcl3d.core import runtime
 from mcl3d.core.config import Section
 from mcl3d.core.errors import MapError, PointCloudError
 from mcl3d.core.geometry import rot_to_quat
+from mcl3d.core.progress import Progress, ProgressCallback, report
 from mcl3d.kernels import tsdf_fusion
+from mcl3d.maps.normals import oriented_normals
 from mcl3d.maps.tsdf import BLOCK, CHUNK_CELLS, MapGeometry, TsdfMap
 
 TRUNCATION_VOXELS = 4
 CPU_RUN_LENGTH = 64
 GPU_RUN_LENGTH = 4
 PERCENTILE_SAMPLES = 8192
+SENSOR_ORIGIN = np.zeros((1, 3))  # a scan's normals face the sensor
+FUSE_POINTS_STAGE = "fuse points"
+FREE_STAGE = "mark free space"
 
 
 class BuildConfig(Section):
@@ -48,6 +53,9 @@ class BuildConfig(Section):
                          description="knn: point-to-plane distances from estimated normals; "
                                      "none: projective distance along rays (faster)")
     normal_neighbors: int = Field(12, ge=4, le=64, description="neighbours for normals")
+    orientation_cell_m: float = Field(
+        0.3, gt=0.0, description="point-cloud maps without viewpoints: one representative "
+                                 "per cell of this edge carries the orientation (maps/normals)")
     ray_spacing_deg: float | None = Field(
         None, gt=0.0, description="angle between neighbouring rays, sets how wide a patch of "
                                   "surface each point fills; default: estimated per scan")
@@ -109,32 +117,6 @@ def grown_capacity(tsdf: TsdfMap, config: BuildConfig) -> int:
             f"{config.max_capacity_blocks}; raise it to at least {needed} or use a larger "
             f"voxel size", setting="max_capacity_blocks")
     return min(int(needed * 1.25) + 16, config.max_capacity_blocks)
-
-
-# ----------------------------------------------------------------------- normals
-def estimate_normals(points: np.ndarray, k: int, viewpoints: np.ndarray | None = None
-                     ) -> np.ndarray:
-    """Unit normals (N, 3) from k nearest neighbours, facing the nearest viewpoint.
-
-    Without viewpoints the orientation is made consistent over the k-NN graph and then
-    flipped so that most near-horizontal surfaces face up (floors and ground dominate the
-    maps of ground robots).
-    """
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(np.float64)))
-    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(k))
-    normals = np.asarray(pcd.normals)
-    if viewpoints is not None and len(viewpoints):
-        _, idx = cKDTree(viewpoints).query(points, k=1, workers=-1)
-        to_view = viewpoints[idx] - points
-        flip = np.einsum("ij,ij->i", normals, to_view) < 0
-        normals[flip] *= -1
-    else:
-        pcd.orient_normals_consistent_tangent_plane(k)
-        normals = np.asarray(pcd.normals)
-        horizontal = np.abs(normals[:, 2]) > 0.9
-        if horizontal.any() and np.median(normals[horizontal, 2]) < 0:
-            normals = -normals
-    return normals.astype(np.float32)
 
 
 # ------------------------------------------------------------------------- scans
@@ -207,7 +189,8 @@ class ScanFuser:
         cfg = self.config
         use_normals = cfg.normals == "knn"
         if use_normals and normals_l is None:
-            normals_l = estimate_normals(pts, cfg.normal_neighbors, np.zeros((1, 3)))
+            normals_l = oriented_normals(pts, cfg.normal_neighbors, SENSOR_ORIGIN,
+                                         cfg.orientation_cell_m)
         nrm = (np.ascontiguousarray(normals_l, dtype=np.float32) if use_normals
                else np.zeros_like(pts))
         T_end = T_start if T_end is None else T_end
@@ -319,8 +302,12 @@ def _cube_blocks(geometry: MapGeometry, pts: np.ndarray, radius_vox: int) -> int
 
 def build_from_points(points: np.ndarray, config: BuildConfig, *,
                       normals: np.ndarray | None = None,
-                      viewpoints: np.ndarray | None = None) -> TsdfMap:
+                      viewpoints: np.ndarray | None = None,
+                      on_progress: ProgressCallback | None = None) -> TsdfMap:
     """Signed distance from an oriented point cloud (map frame), fused in Taichi.
+
+    Without `normals` they are estimated and oriented (maps/normals.py: towards the
+    viewpoints, else consistently over the map).
 
     Each point's tangent plane writes point-to-plane distances into voxels within the
     truncation (weighted by distance along the plane); then blocks farther than the
@@ -332,7 +319,9 @@ def build_from_points(points: np.ndarray, config: BuildConfig, *,
         raise PointCloudError(f"the point cloud has {len(pts)} valid points; at least "
                               f"{config.normal_neighbors} are needed to estimate normals")
     if normals is None:
-        normals = estimate_normals(pts, config.normal_neighbors, viewpoints)
+        normals = oriented_normals(pts, config.normal_neighbors, viewpoints,
+                                   config.orientation_cell_m,
+                                   lambda name: report(on_progress, Progress(name, 0, 1)))
     nrm = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
     if len(nrm) != len(pts):
         raise PointCloudError(f"{len(nrm)} normals for {len(pts)} points")
@@ -354,7 +343,9 @@ def build_from_points(points: np.ndarray, config: BuildConfig, *,
         e = min(len(pts32), s + per_launch)
         tsdf_fusion.points_fuse(tsdf, pts32[s:e], nrm32[s:e], e - s, radius, config.sigma_w_m,
                                 min(config.behind_m, trunc))
+        report(on_progress, Progress(FUSE_POINTS_STAGE, e, len(pts32)))
     tsdf.finalize()
+    report(on_progress, Progress(FREE_STAGE, 0, 1))
     cells = _candidate_cells(tsdf, config.free_margin_m)
     if len(cells):
         centers = _cell_centers(tsdf, cells)
@@ -363,6 +354,7 @@ def build_from_points(points: np.ndarray, config: BuildConfig, *,
         clear = dist[:, 0] >= trunc + 0.5 * np.sqrt(3) * geometry.block_size_m
         outside = (side > 0).sum(axis=1) >= 6
         tsdf.mark_free(cells[clear & outside])
+    report(on_progress, Progress(FREE_STAGE, 1, 1))
     return tsdf
 
 

@@ -166,7 +166,7 @@ def _build(req: BuildMapRequest, kind: str, on_progress: ProgressCallback | None
     if kind == "log":
         return _build_from_log(req, on_progress)
     if kind == "points":
-        return _build_from_points(req)
+        return _build_from_points(req, on_progress)
     if kind == "mesh":
         vertices, triangles = _read_mesh(req.source)
         tsdf = build.build_from_mesh(vertices, triangles, req.config)
@@ -176,18 +176,19 @@ def _build(req: BuildMapRequest, kind: str, on_progress: ProgressCallback | None
     return _Built(tsdf, {"kind": "hdf5 (tsdf_localization/HATSDF)", "path": str(req.source)})
 
 
-def _build_from_points(req: BuildMapRequest) -> _Built:
+def _build_from_points(req: BuildMapRequest, on_progress: ProgressCallback | None) -> _Built:
     cloud = read_cloud_file(req.source)
     if len(cloud.points) == 0:
         raise PointCloudError(f"{req.source}: the point cloud is empty")
     viewpoints = None
     if req.trajectory:
         viewpoints = read_trajectory(req.trajectory).positions()
-    tsdf = build.build_from_points(cloud.points, req.config, viewpoints=viewpoints)
+    tsdf = build.build_from_points(cloud.points, req.config, viewpoints=viewpoints,
+                                   on_progress=on_progress)
     return _Built(tsdf, {"kind": "points", "path": str(req.source),
                          "points": len(cloud.points),
                          "normals_oriented_towards": "trajectory" if viewpoints is not None
-                         else "consistent tangent planes, floors up"},
+                         else "the map itself (consistent tangent planes)"},
                   n_points=len(cloud.points))
 
 
