@@ -277,7 +277,8 @@ def _memory(vertices, triangles):
     data = tsdf.blocks()
     g = tsdf.geometry
     n, free = len(data.coords), len(data.free_coords)
-    per = {"build_f32": VOXELS_PER_BLOCK * 12 + 16, "f32": VOXELS_PER_BLOCK * 8 + 16,
+    # while building: f32 distance, weight and free hits, i64 fixed-point sums (not on Vulkan)
+    per = {"build_f32": VOXELS_PER_BLOCK * 28 + 16, "f32": VOXELS_PER_BLOCK * 8 + 16,
            "f16": VOXELS_PER_BLOCK * 4 + 16}
     coarse = g.n_cells * 4
     dense = g.n_cells * VOXELS_PER_BLOCK * 8

@@ -5,7 +5,15 @@ running sums it adds to the map (see `tsdf_lookup` for the map container)."""
 import taichi as ti
 
 from mcl3d.kernels.tsdf_blocks import allocate_block
-from mcl3d.kernels.tsdf_lookup import UNKNOWN, block_id, ivec3, vec3, voxel_center, world_to_grid
+from mcl3d.kernels.tsdf_lookup import (
+    SUM_ONE,
+    UNKNOWN,
+    block_id,
+    ivec3,
+    vec3,
+    voxel_center,
+    world_to_grid,
+)
 
 MAX_FOOTPRINT_STEPS = 4  # a scan point's band patch is at most 4 x 4 voxels (5 x 5 columns)
 
@@ -31,10 +39,25 @@ def exp_nonpositive(x: ti.f32) -> ti.f32:
 
 
 @ti.func
+def add_fixed(total: ti.template(), x: ti.f32):
+    """Add x (|x| < 2^31) to the fixed-point sum `total` (an i64 in units of 2^-32,
+    tsdf_lookup): floor(x * 2^32), exact (x times a power of two, floored, is an integer
+    an i64 holds), so whole sums are exact whatever the order of the adds."""
+    ti.atomic_add(total, ti.cast(ti.floor(x * SUM_ONE), ti.i64))
+
+
+@ti.func
 def add_sums(m: ti.template(), b: ti.i32, g: ivec3, wd: ti.f32, w: ti.f32):
-    """Add summed observations (sum of w*d, sum of w) to voxel g of pool block b."""
-    ti.atomic_add(m.sdf[b, g[0] & 7, g[1] & 7, g[2] & 7], wd)
-    ti.atomic_add(m.weight[b, g[0] & 7, g[1] & 7, g[2] & 7], w)
+    """Add summed observations (sum of w*d, sum of w) to voxel g of pool block b: as
+    fixed-point numbers (see tsdf_lookup) whose totals do not depend on the order in which
+    threads add, or on Vulkan as floats into the pool (m.exact_sums, see maps.tsdf)."""
+    i, j, k = g[0] & 7, g[1] & 7, g[2] & 7
+    if ti.static(m.exact_sums):
+        add_fixed(m.sum_wd[b, i, j, k], wd * ti.static(1.0 / m.truncation_m))
+        add_fixed(m.sum_w[b, i, j, k], w)
+    else:
+        ti.atomic_add(m.sdf[b, i, j, k], wd)
+        ti.atomic_add(m.weight[b, i, j, k], w)
 
 
 @ti.func

@@ -4,7 +4,15 @@ container is described in `tsdf_lookup`."""
 
 import taichi as ti
 
-from mcl3d.kernels.tsdf_lookup import BLOCK, FREE, FREE_WEIGHT, OVERFLOW, UNKNOWN, ivec3
+from mcl3d.kernels.tsdf_lookup import (
+    BLOCK,
+    FREE,
+    FREE_WEIGHT,
+    OVERFLOW,
+    UNKNOWN,
+    fixed_value,
+    ivec3,
+)
 
 
 @ti.func
@@ -32,6 +40,14 @@ def allocate_block(m: ti.template(), bx: ti.i32, by: ti.i32, bz: ti.i32):
                     m.coarse[bx, by, bz] = nid
                 else:
                     m.coarse[bx, by, bz] = OVERFLOW
+
+
+@ti.func
+def clear_sums(m: ti.template(), b: ti.i32, i: ti.i32, j: ti.i32, h: ti.i32):
+    """The fixed-point build sums of a voxel (when the map has them) back to zero."""
+    if ti.static(m.exact_sums):
+        m.sum_w[b, i, j, h] = 0
+        m.sum_wd[b, i, j, h] = 0
 
 
 @ti.kernel
@@ -65,6 +81,7 @@ def init_blocks(m: ti.template(), start: ti.i32, count: ti.i32, as_sums: ti.i32)
         m.sdf[b, i, j, h] = ti.cast(d0, m.sdf.dtype)
         m.weight[b, i, j, h] = ti.cast(0.0, m.weight.dtype)
         if ti.static(m.writable):
+            clear_sums(m, b, i, j, h)
             m.free_hits[b, i, j, h] = ti.cast(m.block_free[b], ti.f32) * FREE_WEIGHT
 
 
@@ -76,6 +93,7 @@ def zero_blocks(m: ti.template(), start: ti.i32, count: ti.i32):
         m.sdf[b, i, j, h] = ti.cast(0.0, m.sdf.dtype)
         m.weight[b, i, j, h] = ti.cast(0.0, m.weight.dtype)
         if ti.static(m.writable):
+            clear_sums(m, b, i, j, h)
             m.free_hits[b, i, j, h] = 0.0
 
 
@@ -115,10 +133,16 @@ def write_blocks(m: ti.template(), coords: ti.types.ndarray(dtype=ivec3, ndim=1)
 def read_blocks(m: ti.template(), start: ti.i32, count: ti.i32,
                 coords: ti.types.ndarray(dtype=ivec3, ndim=1),
                 sdf: ti.types.ndarray(dtype=ti.f32, ndim=4),
-                weight: ti.types.ndarray(dtype=ti.f32, ndim=4)):
+                weight: ti.types.ndarray(dtype=ti.f32, ndim=4), as_sums: ti.i32):
+    """Blocks [start, start+count): distances and weights, or while building (`as_sums`)
+    the running sums of w*d and w."""
     for k, i, j, h in ti.ndrange(count, BLOCK, BLOCK, BLOCK):
         b = start + k
         if i == 0 and j == 0 and h == 0:
             coords[k] = m.block_coord[b]
         sdf[k, i, j, h] = ti.cast(m.sdf[b, i, j, h], ti.f32)
         weight[k, i, j, h] = ti.cast(m.weight[b, i, j, h], ti.f32)
+        if ti.static(m.exact_sums):  # noqa: SIM102 (compile-time if)
+            if as_sums:
+                sdf[k, i, j, h] = m.truncation_m * fixed_value(m.sum_wd[b, i, j, h])
+                weight[k, i, j, h] = fixed_value(m.sum_w[b, i, j, h])

@@ -20,11 +20,12 @@ from mcl3d.kernels.tsdf_band import (
     max_band_samples,
     tangent_basis,
 )
-from mcl3d.kernels.tsdf_blocks import allocate_block
+from mcl3d.kernels.tsdf_blocks import allocate_block, clear_sums
 from mcl3d.kernels.tsdf_carve import carve_in_front, dense_range
 from mcl3d.kernels.tsdf_lookup import (
     BLOCK,
     UNKNOWN,
+    fixed_value,
     ivec3,
     vec3,
     vec4,
@@ -247,14 +248,18 @@ def finalize_blocks(m: ti.template(), start: ti.i32, count: ti.i32):
     for k, i, j, h in ti.ndrange(count, BLOCK, BLOCK, BLOCK):
         b = start + k
         w = ti.cast(m.weight[b, i, j, h], ti.f32)
+        wd = ti.cast(m.sdf[b, i, j, h], ti.f32)
+        if ti.static(m.exact_sums):
+            w = fixed_value(m.sum_w[b, i, j, h])
+            wd = fixed_value(m.sum_wd[b, i, j, h]) * m.truncation_m
         d = m.truncation_m
         if w > 0.0:
-            d = ti.math.clamp(ti.cast(m.sdf[b, i, j, h], ti.f32) / w,
-                              -m.truncation_m, m.truncation_m)
+            d = ti.math.clamp(wd / w, -m.truncation_m, m.truncation_m)
         else:
             w = -m.free_hits[b, i, j, h]
         m.sdf[b, i, j, h] = ti.cast(d, m.sdf.dtype)
         m.weight[b, i, j, h] = ti.cast(w, m.weight.dtype)
+        clear_sums(m, b, i, j, h)
         m.free_hits[b, i, j, h] = 0.0
 
 

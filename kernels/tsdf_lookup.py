@@ -8,18 +8,24 @@ once per map: its geometry is baked in as constants), a data-oriented container 
   `sdf`, `weight` (pool [capacity, 8, 8, 8], f32 or f16), `alloc_flag` (i32 like
   `coarse`), `block_count` (i32 scalar), `block_coord` (ivec3 [capacity]), `block_free`
   (i32 [capacity]) and, when `writable`, `free_hits` (f32 pool: rays that crossed a voxel
-  in front of their band);
+  in front of their band, whole numbers: exact in any order) and, when `exact_sums` (a
+  writable map but on Vulkan), `sum_w`, `sum_wd` (i64 pools: fixed-point sums, see
+  below);
 - constants `voxel_size_m`, `truncation_m`, `origin_m` (3 floats: the corner of voxel
   (0, 0, 0)), `coarse_dims` (3 ints), `capacity`, `writable` (bool).
 
 Voxel (i, j, k) covers origin + [i, i+1) x [j, j+1) x [k, k+1) voxels; its value is the
 signed distance at its centre, positive in free space, clamped to +-truncation.
 
-While a map is being built the pool holds running sums (sdf = sum of w*d, weight = sum of
-w), so that rays and points fuse with atomic adds and no update is lost when several rays
-touch one voxel in the same launch; `tsdf_fusion.finalize_blocks` turns sums into distances
-once. The other TSDF modules: `tsdf_blocks` (allocation, block I/O), `tsdf_band` (a point's
-truncation band), `tsdf_carve` (free space along rays), `tsdf_fusion` (the fusion kernels).
+While a map is being built, each voxel holds the running sums of w and of w * d / truncation
+as 64-bit integers in units of 2^-32 (SUM_ONE), so that rays and points fuse with atomic
+adds and no update is lost when several rays touch one voxel in the same launch. Integer
+addition is associative, so the sums, and the map, do not depend on the order in which
+threads add (float sums would: their rounding does); see `tsdf_band.add_fixed`. Without
+`exact_sums` the pool itself holds float sums (sdf = sum of w*d, weight = sum of w).
+`tsdf_fusion.finalize_blocks` turns the sums into distances and weights once. The other
+TSDF modules: `tsdf_blocks` (allocation, block I/O), `tsdf_band` (a point's truncation
+band), `tsdf_carve` (free space along rays), `tsdf_fusion` (the fusion kernels).
 """
 
 import taichi as ti
@@ -29,6 +35,13 @@ UNKNOWN = -1  # never observed
 OVERFLOW = -2  # needed, but the pool was full
 FREE = -3  # observed, every voxel free (no surface within truncation)
 FREE_WEIGHT = 1.0  # the weight a query reports for a voxel of a FREE block
+SUM_ONE = 2.0**32  # a weight of 1 in the fixed-point build sums (2^31 in all per voxel)
+
+
+@ti.func
+def fixed_value(total: ti.i64) -> ti.f32:
+    """A fixed-point build sum as a float (the nearest f32)."""
+    return ti.cast(total, ti.f32) * (1.0 / SUM_ONE)
 
 STATE_UNKNOWN = 0
 STATE_OBSERVED = 1  # observed, near or behind a surface (d < truncation)

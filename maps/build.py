@@ -44,7 +44,7 @@ class BuildConfig(Section):
     truncation_m: float | None = Field(
         None, gt=0.0, description="truncation distance; default 4 voxels (0.20 m at 5 cm)")
     capacity_blocks: int = Field(
-        65536, ge=1, description="initial pool size in 8^3 blocks (4 KiB each while building)")
+        65536, ge=1, description="initial pool size in 8^3 blocks (14 KiB each while building)")
     max_capacity_blocks: int = Field(
         1 << 20, ge=1, description="the pool grows up to this many blocks, then fails")
     min_range_m: float = Field(0.3, ge=0.0, description="scan points closer are ignored")

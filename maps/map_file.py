@@ -3,7 +3,8 @@
 Members:
 - `header` — JSON text: format name and version, geometry (voxel size, truncation, origin,
   coarse dims), frame id, dtypes, block counts, how and from what the map was built, and
-  the mcl3d version;
+  the mcl3d version: the inputs, not the clock (no date, no build time), so that the same
+  inputs give the same file, byte for byte (members carry a fixed zip date too);
 - `block_coords` (n, 3) int32 — coordinates of the allocated blocks, lexicographic order;
 - `sdf` (n, 8, 8, 8) float32 or float16 — signed distance in m at voxel centres, indexed
   [block, x, y, z];
@@ -16,7 +17,6 @@ Only allocated blocks are stored, compressed; unknown space costs nothing.
 
 from __future__ import annotations
 
-import datetime
 import json
 import zipfile
 import zlib
@@ -32,6 +32,7 @@ from mcl3d.maps.tsdf import BLOCK, BlockData, MapGeometry, TsdfMap
 FORMAT = "mcl3d-tsdf"
 FORMAT_VERSION = 1
 MEMBERS = ("header", "block_coords", "sdf", "weight", "free_coords")
+ZIP_DATE = (1980, 1, 1, 0, 0, 0)  # every member's date (the earliest a zip can hold)
 
 
 def make_header(tsdf: TsdfMap, data: BlockData, source: dict, build: dict,
@@ -42,8 +43,6 @@ def make_header(tsdf: TsdfMap, data: BlockData, source: dict, build: dict,
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
         "mcl3d_version": __version__,
-        "created_utc": datetime.datetime.now(datetime.timezone.utc).strftime(
-            "%Y-%m-%dT%H:%M:%SZ"),
         "frame_id": tsdf.frame_id,
         "voxel_size_m": g.voxel_size_m,
         "truncation_m": g.truncation_m,
@@ -67,11 +66,23 @@ def save_map(path: Path, tsdf: TsdfMap, *, source: dict, build: dict,
     header = make_header(tsdf, data, source, build, f16)
     dtype = np.float16 if f16 else np.float32
     with atomic_path(Path(path)) as tmp, open(tmp, "wb") as f:
-        np.savez_compressed(
-            f, header=np.array(json.dumps(header)), block_coords=data.coords.astype(np.int32),
-            sdf=data.sdf.astype(dtype), weight=data.weight.astype(dtype),
-            free_coords=data.free_coords.astype(np.int32))
+        _write_npz(f, {"header": np.array(json.dumps(header)),
+                       "block_coords": data.coords.astype(np.int32),
+                       "sdf": data.sdf.astype(dtype), "weight": data.weight.astype(dtype),
+                       "free_coords": data.free_coords.astype(np.int32)})
     return header
+
+
+def _write_npz(f, arrays: dict[str, np.ndarray]) -> None:
+    """What np.savez_compressed writes (one deflated .npy per member), but with ZIP_DATE on
+    every member instead of the time of writing, so the bytes depend on the arrays alone."""
+    with zipfile.ZipFile(f, "w", compression=zipfile.ZIP_DEFLATED, allowZip64=True) as zf:
+        for name, array in arrays.items():
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=ZIP_DATE)
+            info.compress_type = zipfile.ZIP_DEFLATED
+            info.external_attr = 0o600 << 16  # -rw------- as savez gives its members
+            with zf.open(info, "w", force_zip64=True) as member:
+                np.lib.format.write_array(member, np.asanyarray(array), allow_pickle=False)
 
 
 def _open(path: Path):
@@ -186,15 +197,16 @@ def coarse_overlap(a: np.ndarray, b: np.ndarray) -> bool:
     return len(np.unique(both, axis=0)) != len(both)
 
 
-def load_map(path: Path, *, f16: bool | None = None, extra_capacity_blocks: int = 0) -> TsdfMap:
-    """Load a map file onto the device (Taichi must be started).
+def load_map(path: Path, *, f16: bool | None = None) -> TsdfMap:
+    """Load a map file onto the device (Taichi must be started), read-only: distances and
+    weights, without the build-time sums.
 
-    `f16` None keeps the file's precision; `extra_capacity_blocks` leaves room to fuse more.
+    `f16` None keeps the file's precision.
     """
     header, geometry, data = read_blocks(path)
     use_f16 = header["distance_dtype"] == "float16" if f16 is None else f16
-    tsdf = TsdfMap(geometry, max(len(data.coords) + extra_capacity_blocks, 1), f16=use_f16,
-                   writable=not use_f16, frame_id=str(header["frame_id"]))
+    tsdf = TsdfMap(geometry, max(len(data.coords), 1), f16=use_f16, writable=False,
+                   frame_id=str(header["frame_id"]))
     tsdf.mark_free(data.free_coords)
     tsdf.allocate(data.coords)
     tsdf.write_blocks(data.coords, data.sdf, data.weight)

@@ -118,7 +118,9 @@ class TsdfMap:
     """A TSDF on the device; build with mcl3d.maps.build, load with mcl3d.maps.map_file.
 
     `f16` stores distances (and weights) in half precision: half the memory for read-only
-    localization maps. Fusion needs f32 (no f16 atomics on Vulkan).
+    localization maps. A `writable` map (one being built) also holds its free-space hits
+    and (but on Vulkan) the fixed-point sums of fusion: 28 bytes a voxel instead of 8 (f32)
+    or 4 (f16).
     """
 
     def __init__(self, geometry: MapGeometry, capacity_blocks: int, *, f16: bool = False,
@@ -135,8 +137,8 @@ class TsdfMap:
         self.capacity = int(capacity_blocks)
         self.f16 = bool(f16)
         if f16 and writable:
-            raise ConfigError("an f16 map is read-only (no f16 atomics on Vulkan): build in "
-                              "f32, store with f16 distances")
+            raise ConfigError("an f16 map is read-only: build in f32, store with f16 "
+                              "distances")
         self.writable = bool(writable)
         self.header: dict | None = None  # the file header when loaded from a file
         self.as_sums = False  # True while being built: the pool holds sums, not distances
@@ -155,12 +157,25 @@ class TsdfMap:
         pool = builder.dense(ti.i, self.capacity).dense(ti.jkl, BLOCK)
         pool.place(self.sdf)
         pool.place(self.weight)
+        # fixed-point build sums (kernels.tsdf_lookup), except on Vulkan: Mesa's lavapipe
+        # loses integer atomic adds in the band's patch loop (float ones arrive), so there the
+        # pool sums floats as before, in whatever order the threads add
+        self.exact_sums = writable and runtime.current().backend != "vulkan"
+        self._trees = [self._place_sums()] if self.exact_sums else []
         if writable:  # its own array: the band's distance and weight stay packed
             self.free_hits = ti.field(ti.f32)
             builder.dense(ti.i, self.capacity).dense(ti.jkl, BLOCK).place(self.free_hits)
-        self._tree = builder.finalize()
+        self._trees.append(builder.finalize())
         self._used_slots = 0  # pool slots [used, capacity) still hold zeros (never written)
         self.clear()
+
+    def _place_sums(self):
+        """The i64 build sums in a tree of their own, so that they start at byte 0 (8-byte
+        atomics need 8-byte alignment; the main tree's i32 fields come first)."""
+        builder = ti.FieldsBuilder()
+        self.sum_w, self.sum_wd = ti.field(ti.i64), ti.field(ti.i64)
+        builder.dense(ti.i, self.capacity).dense(ti.jkl, BLOCK).place(self.sum_w, self.sum_wd)
+        return builder.finalize()
 
     # ------------------------------------------------------------------ bookkeeping
     def clear(self) -> None:
@@ -176,9 +191,9 @@ class TsdfMap:
 
     def destroy(self) -> None:
         """Free the device memory now (the object is unusable afterwards)."""
-        if self._tree is not None:
-            self._tree.destroy()
-            self._tree = None
+        for tree in self._trees:
+            tree.destroy()
+        self._trees = []
 
     @property
     def requested_blocks(self) -> int:
@@ -264,7 +279,7 @@ class TsdfMap:
             c = np.zeros((e - s, 3), np.int32)
             d = np.zeros((e - s, BLOCK, BLOCK, BLOCK), np.float32)
             w = np.zeros_like(d)
-            tsdf_blocks.read_blocks(self, s, e - s, c, d, w)
+            tsdf_blocks.read_blocks(self, s, e - s, c, d, w, int(self.as_sums))
             coords[s:e], sdf[s:e], weight[s:e] = c, d, w
         coarse = self.coarse_numpy()
         free = np.argwhere(coarse == FREE).astype(np.int32)

@@ -209,14 +209,17 @@ def map_info_table(info: MapInfo) -> Table:
     from mcl3d.mapping.pipeline import map_rows
 
     header, exports = info.header, info.exports
+    # map files record no clock since issue #22 (reproducible bytes); older ones show theirs
+    created = f", {header['created_utc']}" if "created_utc" in header else ""
+    seconds = header.get("build", {}).get("seconds")
     rows = [("file", str(info.path)),
             ("format", f"{header['format']} v{header['format_version']} (mcl3d "
-                       f"{header.get('mcl3d_version', '?')}, {header.get('created_utc', '?')})"),
+                       f"{header.get('mcl3d_version', '?')}{created})"),
             ("frame", header["frame_id"]),
             ("precision", header["distance_dtype"]),
             *map_rows(info.geometry, info.stats),
             ("built from", json.dumps(header.get("source", {}))),
-            ("build time", f"{header.get('build', {}).get('seconds', '?')} s")]
+            *([("build time", f"{seconds} s")] if seconds is not None else [])]
     if info.mesh_path:
         rows.append(("mesh", f"{exports.mesh_triangles} triangles -> {info.mesh_path}"))
     if info.points_path:

@@ -330,8 +330,7 @@ def _write(req: BuildMapRequest, built: _Built, kind: str, seconds: float) -> Bu
     tsdf = built.tsdf
     if tsdf.n_blocks == 0:
         raise MapError(f"{req.source}: the map has no surface blocks; nothing to write")
-    build_info = {"config": req.config.model_dump(), "seconds": round(seconds, 3),
-                  "f16": req.f16}
+    build_info = {"config": req.config.model_dump(), "f16": req.f16}  # inputs, no clock
     header = map_file.save_map(req.output, tsdf, source=built.source_info, build=build_info,
                                f16=req.f16)
     data = tsdf.blocks()
