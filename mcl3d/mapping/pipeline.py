@@ -34,7 +34,7 @@ from mcl3d.maps.tsdf import (
     loaded_bytes_per_block,
 )
 
-LOG_SUFFIXES = (".mcap", ".bag", ".db3")
+LOG_SUFFIXES = (".mcap", ".bag", ".db3", ".pcap")
 MESH_ONLY_SUFFIXES = (".obj", ".stl", ".off", ".gltf", ".glb")
 POINT_ONLY_SUFFIXES = (".pcd", ".bin")
 HDF5_SUFFIXES = (".h5", ".hdf5")

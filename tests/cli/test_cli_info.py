@@ -234,17 +234,18 @@ def test_json_of_bad_input_is_one_red_line(tmp_path):
 
 
 def test_truncated_mcap(small_log, tmp_path):
-    """A cut log is read up to the cut (its format says so); one cut before its first message
-    stops with one line."""
+    """A log cut in its data section is read up to the cut (its format says so); one cut in its
+    summary lost nothing; one cut before its first message stops with one line."""
     data = small_log.read_bytes()
-    for cut in (len(data) // 2, len(data) - 3):
+    data_end = data.index(bytes([0x0F]) + (4).to_bytes(8, "little"))  # the DataEnd record
+    for cut, data_lost in ((data_end - 5, True), (len(data) - 3, False)):
         bad = tmp_path / "cut.mcap"
         bad.write_bytes(data[:cut])
         result = mcl3d("info", bad, "--json")
         assert result.returncode == 0, result.stderr
-        assert "truncated or damaged at byte" in json.loads(result.stdout)["format"]
+        assert ("truncated or damaged at byte" in json.loads(result.stdout)["format"]) == data_lost
         with LogReader(bad) as reader:
-            assert reader.faults.truncation is not None
+            assert (reader.faults.truncation is not None) == data_lost
     bad.write_bytes(data[:40])
     before = sorted(tmp_path.iterdir())
     assert_one_line_error(mcl3d("info", bad), "cut.mcap", "truncated")

@@ -1,10 +1,9 @@
-"""Real Ouster OS1-128 data (ouster-sdk test set, BSD-3-Clause): pcap decoding, and a map
-built from its 155k-point map cloud on whose zero level set its 3 real scans lie."""
+"""Real Ouster OS1-128 data (ouster-sdk test set, BSD-3-Clause): its pcap read as a log lies on
+its 155k-point map, and on the zero level set of a map built from that cloud (the pcap
+decoding itself is tested against the SDK in tests/io/test_ouster_pcap.py)."""
 
 import numpy as np
 import pytest
-
-from mcl3d.core.errors import LogFormatError
 
 FOLDER = "ouster_os1_128_lb_n3"
 STEM = "OS-1-128_v2.3.0_1024x10"
@@ -12,11 +11,12 @@ STEM = "OS-1-128_v2.3.0_1024x10"
 
 @pytest.fixture(scope="module")
 def ouster(shared_data):
-    from mcl3d.io.logs.ouster_pcap import read_ouster_pcap
+    from mcl3d.io.logs.reader import LogReader
     from mcl3d.io.trajectory import read_kitti
 
     d = shared_data / FOLDER
-    clouds = read_ouster_pcap(d / f"{STEM}_lb_n3.pcap", d / f"{STEM}.json")
+    with LogReader(d / f"{STEM}_lb_n3.pcap") as reader:
+        clouds = list(reader.scans())
     poses = read_kitti(d / f"{STEM}_lb_n3_poses_kitti.txt").poses
     return d, clouds, poses
 
@@ -37,18 +37,6 @@ def test_pcap_decodes_three_frames_in_the_sensor_frame(ouster):
     for cloud, T in zip(clouds, poses, strict=True):
         dist, _ = tree.query(cloud.points @ T[:3, :3].T + T[:3, 3])
         assert np.median(dist) < 0.05  # README: 2-4 cm with the poses
-
-
-def test_truncated_pcap_is_a_clear_error(ouster, tmp_path):
-    from mcl3d.io.logs.ouster_pcap import read_ouster_pcap
-
-    d, _, _ = ouster
-    cut = tmp_path / "cut.pcap"
-    cut.write_bytes((d / f"{STEM}_lb_n3.pcap").read_bytes()[:100000])
-    with pytest.raises(LogFormatError, match="truncated packet record"):
-        read_ouster_pcap(cut, d / f"{STEM}.json")
-    with pytest.raises(LogFormatError, match="not a classic pcap"):
-        read_ouster_pcap(d / f"{STEM}.json", d / f"{STEM}.json")
 
 
 def test_real_scans_lie_on_the_zero_level_set_of_the_real_map(ti_runtime, ouster):

@@ -117,3 +117,73 @@ def test_real_scans_pass_the_checks(clean_log):
 
     with LogReader(clean_log) as reader:
         check_scans(reader, clean_log, needs_3d=True)
+
+
+@pytest.fixture(scope="module")
+def chunked_log(clean_log, tmp_path_factory):
+    """The clean log in chunks of about one scan each, as recorders with small chunks write."""
+    from mcl3d.io.logs.reader import LogReader
+    from mcl3d.io.logs.writer import LogWriter
+    from mcl3d.sim.pipeline import TOPICS
+
+    path = tmp_path_factory.mktemp("chunked") / "chunked.mcap"
+    with LogReader(clean_log) as reader, LogWriter(path, chunk_size=256 * 1024) as w:
+        w.write_tf(TOPICS["tf_static"], reader.static_transforms())
+        write = {"points": w.write_points, "imu": w.write_imu, "gt": w.write_pose}
+        for kind, msg in reader.messages(("points", "imu", "gt")):
+            write[kind](TOPICS[kind], msg)
+    return path
+
+
+def _chunks(path) -> list:
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        return make_reader(f).get_summary().chunk_indexes
+
+
+def _damaged(chunked_log, tmp_path, where: str) -> tuple:
+    """The log with 4 kB of garbage over a middle chunk's records or its head; where it is."""
+    data = bytearray(chunked_log.read_bytes())
+    chunks = _chunks(chunked_log)
+    chunk = chunks[len(chunks) // 2]
+    at = chunk.chunk_start_offset + (chunk.chunk_length // 3 if where == "records" else 0)
+    data[at:at + 4096] = np.random.default_rng(7).bytes(4096)
+    bad = tmp_path / f"damaged_{where}.mcap"
+    bad.write_bytes(bytes(data))
+    return bad, at
+
+
+def test_a_log_damaged_in_the_middle_keeps_the_rest(chunked_log, tmp_path, ti_runtime):
+    """Garbage over a middle chunk's records (found when the run reads that chunk): the chunk
+    is skipped, the rest is used, and the damage is named once."""
+    from mcl3d.io.trajectory import read_tum
+
+    bad, at = _damaged(chunked_log, tmp_path, "records")
+    out = tmp_path / "odo"
+    result = CliRunner().invoke(app, ["odometry", str(bad), "-o", str(out), "--backend", "cpu"])
+    assert result.exit_code == 0, result.output
+    assert result.output.count("the log is damaged in 1 place") == 1, result.output
+    poses = len(read_tum(out / "odometry.tum"))
+    assert poses >= 18  # of 20 scans
+    damaged = json.loads((out / "odometry_summary.json").read_text())["faults"]["log_damaged"]
+    assert damaged["scans_lost"] == 20 - poses >= 1
+    assert damaged["stretches"][0][0] <= at < damaged["stretches"][0][1]
+    info = CliRunner().invoke(app, ["info", str(bad), "--json"])  # it reads a few scans only
+    assert info.exit_code == 0, info.output
+
+
+def test_info_names_a_damaged_chunk_head(chunked_log, tmp_path):
+    """Garbage over a middle chunk's head is found on opening: info names it and counts the
+    scans that can be read."""
+    from mcl3d.io.logs.reader import LogReader
+
+    bad, _at = _damaged(chunked_log, tmp_path, "head")
+    with LogReader(bad) as reader:
+        readable = sum(1 for _ in reader.scans())
+    assert 18 <= readable < 20
+    info = CliRunner().invoke(app, ["info", str(bad), "--json"])
+    assert info.exit_code == 0, info.output
+    described = json.loads(info.stdout)
+    assert "1 damaged stretch skipped" in described["format"]
+    assert {t["name"]: t["count"] for t in described["topics"]}["/lidar/points"] == readable

@@ -44,6 +44,10 @@ def read_cloud_file(path: Path) -> PointCloud:
     if missing:
         raise PointCloudError(f"{path}: no {'/'.join(missing)} field(s) (fields: "
                               f"{', '.join(names) or 'none'}); it cannot be used as 3D points")
+    several = [a for a in ("x", "y", "z", time_field_name(list(names))) if a and raw.dtype[a].shape]
+    if several:
+        raise PointCloudError(f"{path}: field {several[0]!r} has several values per point; "
+                              "coordinates and the per-point time have one")
     return cloud_from_structured(raw, _file_stamp_ns(raw), "", height, width)
 
 
@@ -68,10 +72,13 @@ def _file_stamp_ns(raw: np.ndarray) -> int:
 
 _PCD_TYPES = {("F", 4): "f4", ("F", 8): "f8", ("U", 1): "u1", ("U", 2): "u2", ("U", 4): "u4",
               ("U", 8): "u8", ("I", 1): "i1", ("I", 2): "i2", ("I", 4): "i4", ("I", 8): "i8"}
+_LZF_MAX_RATIO = 88  # a 3-byte back reference copies at most 264 bytes
 
 
 def lzf_decompress(src: bytes, out_len: int) -> bytes:
     """LZF decompression (the format PCD binary_compressed uses); ValueError when corrupt."""
+    if out_len > _LZF_MAX_RATIO * len(src):
+        raise ValueError(f"header says {out_len} bytes, more than {len(src)} LZF bytes can hold")
     out = bytearray(out_len)
     ip = op = 0
     n = len(src)
@@ -145,6 +152,9 @@ def _read_pcd(path: Path) -> tuple[np.ndarray, int, int]:
                               ) from None
     if not (len(names) == len(sizes) == len(types) == len(counts)):
         raise PointCloudError(f"{path}: PCD header FIELDS/SIZE/TYPE/COUNT lengths differ")
+    if not names or min(counts) < 1 or min(width, height, n) < 0:
+        raise PointCloudError(f"{path}: malformed PCD header (no FIELDS, a COUNT below 1 or a "
+                              "negative WIDTH, HEIGHT or POINTS)")
     formats, offsets, keep, offset = [], [], [], 0
     for name, size, typ, count in zip(names, sizes, types, counts, strict=True):
         code = _PCD_TYPES.get((typ, size))
@@ -205,6 +215,9 @@ def _pcd_compressed(path, body, names, sizes, counts, dtype, n) -> np.ndarray:
         plain = lzf_decompress(body[8:8 + compressed], uncompressed)
     except ValueError as exc:
         raise PointCloudError(f"{path}: PCD compressed data is corrupt ({exc})") from None
+    if n * dtype.itemsize > len(plain):
+        raise PointCloudError(f"{path}: PCD compressed data holds {len(plain)} bytes, less than "
+                              f"{n} points need; the file is corrupt")
     raw = np.zeros(n, dtype=dtype)
     start = 0  # binary_compressed stores each field as one contiguous block (field-major)
     for name, size, count in zip(names, sizes, counts, strict=True):
@@ -243,13 +256,19 @@ def _read_ply(path: Path) -> np.ndarray:
                 continue
             if words[0] == "end_header":
                 break
-            if words[0] == "format":
-                fmt = words[1]
-            elif words[0] == "element":
-                current = (words[1], int(words[2]), [])
-                elements.append(current)
-            elif words[0] == "property" and current is not None:
-                current[2].append(words[1:])
+            try:
+                if words[0] == "format":
+                    fmt = words[1]
+                elif words[0] == "element":
+                    current = (words[1], int(words[2]), [])
+                    elements.append(current)
+                elif words[0] == "property" and current is not None:
+                    current[2].append((words[1], words[4] if words[1] == "list" else words[2]))
+            except (IndexError, ValueError):
+                raise PointCloudError(f"{path}: malformed PLY header line {line.strip()!r}"
+                                      ) from None
+            if current is not None and current[1] < 0:
+                raise PointCloudError(f"{path}: PLY element {current[0]!r} has a negative count")
         body_start = f.tell()
     if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
         raise PointCloudError(f"{path}: unknown PLY format {fmt!r}")
@@ -263,6 +282,9 @@ def _read_ply(path: Path) -> np.ndarray:
             dtype = np.dtype([(p[1], order + _PLY_TYPES[p[0]]) for p in props])
         except KeyError as exc:
             raise PointCloudError(f"{path}: PLY property type {exc} is not supported") from None
+        except ValueError:  # a property name twice
+            raise PointCloudError(f"{path}: PLY element {name!r} repeats a property name "
+                                  f"({' '.join(p[1] for p in props)})") from None
         if name == "vertex":
             if fmt == "ascii":
                 return _ply_ascii(path, body_start, skip_lines, count, dtype)
@@ -285,7 +307,10 @@ def _ply_ascii(path: Path, body_start: int, skip_lines: int, count: int, dtype: 
     width = len(dtype.names)
     if len(values) < count * width:
         raise PointCloudError(f"{path}: PLY has fewer than {count} ascii vertices; truncated")
-    table = np.array(values[: count * width], dtype=np.float64).reshape(count, width)
+    try:
+        table = np.array(values[: count * width], dtype=np.float64).reshape(count, width)
+    except ValueError as exc:
+        raise PointCloudError(f"{path}: PLY ascii vertices are not numeric ({exc})") from None
     raw = np.zeros(count, dtype=dtype.newbyteorder("="))
     for i, name in enumerate(dtype.names):
         raw[name] = table[:, i]

@@ -5,7 +5,8 @@ Such a message is dropped where the log is read (`FaultFilter`, one per pass ove
 messages), counted by fault kind with its first stamps in `LogFaults`, and named once in the
 run's summary (CONVENTIONS §6): one fault never ends a run. Stamps are compared as integer
 nanoseconds, per message kind. A log damaged part way (`LogTruncation`) is read up to the
-damage and named the same way.
+damage, and damaged stretches in its middle (`LogDamage`) are skipped, reading on at the next
+intact chunk; both are named the same way.
 """
 
 from __future__ import annotations
@@ -63,6 +64,57 @@ class LogTruncation:
                 "recording is lost")
 
 
+@dataclass(frozen=True)
+class DamagedStretch:
+    """Bytes in the middle of a log that hold no readable record (garbage, a chunk whose CRC
+    fails, a zeroed stretch), skipped up to the next intact chunk; the messages they held per
+    topic, from the log's message indexes, or None where those are damaged too."""
+
+    start_byte: int
+    end_byte: int
+    messages_lost: dict[str, int] | None
+
+
+@dataclass
+class LogDamage:
+    """The damaged stretches met so far, by start byte (passes over a log meet the same ones);
+    `points_topic` names the scans among the messages lost."""
+
+    total_bytes: int
+    points_topic: str | None = None
+    stretches: dict[int, DamagedStretch] = field(default_factory=dict)
+
+    def add(self, stretch: DamagedStretch) -> None:
+        self.stretches.setdefault(stretch.start_byte, stretch)
+
+    def _lost(self, topic: str | None) -> int | None:
+        """Messages lost (on `topic`, or on all topics), None when a stretch cannot tell."""
+        total = 0
+        for s in self.stretches.values():
+            if s.messages_lost is None:
+                return None
+            total += sum(n for t, n in s.messages_lost.items() if topic in (None, t))
+        return total
+
+    def as_dict(self) -> dict:
+        ordered = sorted(self.stretches.values(), key=lambda s: s.start_byte)
+        return {"stretches": [[s.start_byte, s.end_byte] for s in ordered],
+                "bytes_lost": sum(s.end_byte - s.start_byte for s in ordered),
+                "total_bytes": self.total_bytes,
+                "messages_lost": self._lost(None),
+                "scans_lost": self._lost(self.points_topic) if self.points_topic else 0}
+
+    def warning(self) -> str:
+        d = self.as_dict()
+        n = len(d["stretches"])
+        lost = ("an unknown number of scans lost" if d["scans_lost"] is None
+                else f"{d['scans_lost']} scan{'s' * (d['scans_lost'] != 1)} lost")
+        return (f"the log is damaged in {n} place{'s' * (n != 1)} (from byte "
+                f"{d['stretches'][0][0]:,}; {d['bytes_lost'] / 1e6:.2f} of its "
+                f"{self.total_bytes / 1e6:.1f} MB): skipped the damage and read on from the "
+                f"next intact chunk, {lost}")
+
+
 @dataclass
 class LogFaults:
     """The messages a run dropped, by fault kind ("scan_repeated_stamp", "imu_not_finite",
@@ -71,9 +123,13 @@ class LogFaults:
 
     tallies: dict[str, FaultTally] = field(default_factory=dict)
     truncation: LogTruncation | None = None  # the log is damaged part way
+    damage: LogDamage | None = None  # damaged stretches skipped in the log's middle
 
     def found(self) -> bool:
-        return bool(self.tallies) or self.truncation is not None
+        return bool(self.tallies) or self.truncation is not None or self._damaged()
+
+    def _damaged(self) -> bool:
+        return self.damage is not None and bool(self.damage.stretches)
 
     def offer(self, kind: str, tally: FaultTally) -> None:
         """A pass's tally of `kind`, kept when no earlier pass found more."""
@@ -91,11 +147,15 @@ class LogFaults:
                  for kind, t in sorted(self.tallies.items())}
         if self.truncation is not None:
             found["log_truncated"] = self.truncation.as_dict()
+        if self._damaged():
+            found["log_damaged"] = self.damage.as_dict()
         return found
 
     def warnings(self) -> list[str]:
         """One line per fault kind, naming its first stamps."""
         lines = [] if self.truncation is None else [self.truncation.warning()]
+        if self._damaged():
+            lines.append(self.damage.warning())
         for kind, t in sorted(self.tallies.items()):
             message, fault = next((m, kind[len(m) + 1:]) for m in KIND_WORDS
                                   if kind.startswith(m + "_"))

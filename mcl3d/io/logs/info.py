@@ -18,9 +18,10 @@ from pathlib import Path
 import numpy as np
 
 from mcl3d.core.errors import Mcl3dError
+from mcl3d.io.logs import livox
 from mcl3d.io.logs import ros_types as rt
 from mcl3d.io.logs.pointcloud2 import DATATYPE_NAMES, time_field_name
-from mcl3d.io.logs.reader import KINDS, LogReader
+from mcl3d.io.logs.reader import KINDS, LogReader, standard_fields
 
 MAX_SCANS = 3
 FRAME_SAMPLES = 3
@@ -128,6 +129,14 @@ def _size(path: Path) -> int:
     return path.stat().st_size
 
 
+def _layout(msg, msgtype: str, cloud) -> tuple[list[tuple[str, str, int]], int, int]:
+    """(fields, height, width) of a scan message as it is in the log."""
+    if msgtype in livox.CUSTOM_MSG_TYPES:
+        return [(name, kind, 1) for name, kind in livox.POINT_LAYOUT], 1, cloud.width
+    return ([(f.name, DATATYPE_NAMES.get(int(f.datatype), f"type{f.datatype}"), int(f.count))
+             for f in msg.fields], int(msg.height), int(msg.width))
+
+
 def _cloud_info(reader: LogReader, topic: str, max_scans: int) -> tuple[CloudInfo, set[str],
                                                                           int | None]:
     """Layout and valid-point counts from the first `max_scans` scans of a cloud topic."""
@@ -135,10 +144,10 @@ def _cloud_info(reader: LogReader, topic: str, max_scans: int) -> tuple[CloudInf
     for index, (_topic, log_ns, msg) in enumerate(reader.source.messages([topic]), start=1):
         if first_ns is None:
             first_ns = log_ns
-        cloud = rt.to_pointcloud(msg, f"{reader.path} topic {topic} message {index}")
-        if layout is None:
-            layout = ([(f.name, DATATYPE_NAMES.get(int(f.datatype), f"type{f.datatype}"),
-                        int(f.count)) for f in msg.fields], int(msg.height), int(msg.width))
+        msgtype = reader.all_topics[topic].msgtype
+        with standard_fields(reader.path, topic, msgtype):
+            cloud = rt.to_scan(msg, msgtype, f"{reader.path} topic {topic} message {index}")
+            layout = layout or _layout(msg, msgtype, cloud)
         valid.append(len(cloud.points))
         frames.add(cloud.frame_id)
         if cloud.times_s is not None and len(cloud.times_s):
@@ -173,6 +182,9 @@ def _frames_and_first(reader: LogReader, topic: str) -> tuple[set[str], int | No
 
 
 def _last_ns(reader: LogReader, topic: str) -> int | None:
+    known = getattr(reader.source, "last_log_ns", {})  # sources that index themselves on opening
+    if topic in known:
+        return known[topic]
     try:
         for _topic, log_ns, _msg in reader.source.messages([topic], reverse=True):
             return log_ns
@@ -194,7 +206,7 @@ def log_info(path: Path, *, max_scans: int = MAX_SCANS, points_topic: str | None
             summary = TopicSummary(name, tinfo.msgtype, tinfo.count, None)
             if not tinfo.decodable:
                 frames, first = set(), None
-            elif tinfo.msgtype == rt.POINTCLOUD2:
+            elif tinfo.msgtype in rt.POINT_TYPES:
                 summary.cloud, frames, first = _cloud_info(reader, name, max_scans)
             else:
                 frames, first = _frames_and_first(reader, name)

@@ -28,6 +28,7 @@ GT_TOPIC = "/ground_truth"
 LIDAR_FRAME = "velodyne"
 MAP_FRAME = "map"
 POINT_BYTES = 16  # float32 x y z reflectance
+_MAX_TIME_S = 9.2e9  # integer nanoseconds hold times up to about 292 years
 
 
 def is_kitti_folder(path: Path) -> bool:
@@ -70,16 +71,24 @@ def _velodyne_to_camera(folder: Path) -> np.ndarray:
         raise LogFormatError(f"{folder}: the poses are camera poses and need calib.txt (its "
                              "Tr: line, velodyne to camera) to become lidar poses; add the "
                              "sequence's calib.txt")
-    for line in calib.read_text().splitlines():
+    try:
+        lines = calib.read_text().splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise LogFormatError(f"{calib}: cannot read it ({exc})") from None
+    for line in lines:
         key, _, rest = line.partition(":")
         if key.strip() == "Tr":
             try:
                 values = np.array([float(v) for v in rest.split()], dtype=np.float64)
             except ValueError:
                 values = np.zeros(0)
-            if values.size != 12:
-                raise LogFormatError(f"{calib}: the Tr: line does not hold 12 numbers")
-            return _homogeneous(values)
+            if values.size != 12 or not np.isfinite(values).all():
+                raise LogFormatError(f"{calib}: the Tr: line does not hold 12 finite numbers")
+            T_cam_velo = _homogeneous(values)
+            if abs(np.linalg.det(T_cam_velo)) < 1e-9:
+                raise LogFormatError(f"{calib}: the Tr: line is not a pose (its 3x3 part has "
+                                     "no inverse)")
+            return T_cam_velo
     raise LogFormatError(f"{calib}: no Tr: line (velodyne to camera 0, 12 numbers)")
 
 
@@ -127,6 +136,10 @@ class KittiFolderSource:
         times_s = _numbers(self.path / "times.txt", 1, "a time in seconds")[:, 0]
         if times_s.size == 0:
             raise LogFormatError(f"{self.path / 'times.txt'}: no times; one line per scan needed")
+        if not (np.abs(times_s) < _MAX_TIME_S).all():  # NaN and inf included
+            bad = int(np.flatnonzero(~(np.abs(times_s) < _MAX_TIME_S))[0])
+            raise LogFormatError(f"{self.path / 'times.txt'}: time {bad + 1} is {times_s[bad]}, "
+                                 "not a time in seconds")
         self.stamps_ns = np.rint(times_s * 1e9).astype(np.int64)
         self._files = _scan_files(self.path, len(times_s))
         self.T_map_lidar = self._lidar_poses(len(times_s))

@@ -21,6 +21,7 @@ DATATYPE_NAMES = {1: "int8", 2: "uint8", 3: "int16", 4: "uint16", 5: "int32", 6:
                   7: "float32", 8: "float64"}
 _NUMPY_TO_DATATYPE = {v: k for k, v in DATATYPES.items()}
 TIME_FIELDS = ("t", "time", "timestamp", "offset_time")
+_MAX_POINT_STEP = 2**31 - 1  # numpy's limit on an item's bytes
 
 
 @dataclass
@@ -55,6 +56,9 @@ def time_field_name(names: list[str]) -> str | None:
 
 def _structured_dtype(fields: list[FieldSpec], point_step: int, big_endian: bool,
                       where: str) -> np.dtype:
+    if point_step > _MAX_POINT_STEP:
+        raise PointCloudError(f"{where}: point_step {point_step} is not a point's size; the "
+                              "message is corrupt")
     order = ">" if big_endian else "<"
     names, formats, offsets = [], [], []
     for f in fields:
@@ -63,6 +67,9 @@ def _structured_dtype(fields: list[FieldSpec], point_step: int, big_endian: bool
                                   f"{f.datatype}; expected 1..8")
         if f.name in names or not f.name:
             continue  # duplicate or unnamed fields (e.g. padding declared as a field) are skipped
+        if f.count > 1 and f.name in ("x", "y", "z", *TIME_FIELDS):
+            raise PointCloudError(f"{where}: field {f.name!r} has {f.count} values per point; "
+                                  "coordinates and the per-point time have one")
         size = int(DATATYPES[f.datatype][1]) * max(f.count, 1)
         if f.offset + size > point_step:
             raise PointCloudError(f"{where}: field {f.name!r} (offset {f.offset}, {size} bytes) "

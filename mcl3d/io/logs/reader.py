@@ -1,23 +1,26 @@
 """Streaming log reader: scans, IMU, odometry, ground truth and static transforms.
 
-Reads MCAP (ROS 2 CDR or ROS 1 encoding), ROS 1 .bag files, ROS 2 bag folders and KITTI
-odometry folders; memory stays flat because messages are decoded one at a time. Topics
+Reads MCAP (ROS 2 CDR or ROS 1 encoding), ROS 1 .bag files, ROS 2 bag folders, KITTI
+odometry folders and Ouster .pcap files; memory stays flat because messages are decoded one
+at a time. Scans are sensor_msgs/PointCloud2 or Livox CustomMsg (`livox.py`). Topics
 are chosen per CONVENTIONS §3: by message type when exactly one topic has it, ground truth
 by name (ground_truth, groundtruth, gt); otherwise a `TopicError` lists the candidates and
 the option to pass.
 Messages with faults (a repeated or backwards stamp, NaN/inf, an empty scan) are dropped and
-counted in `faults` (see `faults.py`), as is a log damaged part way (read up to the damage).
+counted in `faults` (see `faults.py`), as is a log damaged part way (read up to the damage)
+or in its middle (the damaged stretches skipped, counted as passes meet them).
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from mcl3d.core.errors import TopicError
+from mcl3d.core.errors import LogFormatError, TopicError
 from mcl3d.core.geometry import se3_inverse
 from mcl3d.io.logs import ros_types as rt
 from mcl3d.io.logs.faults import FaultFilter, LogFaults, LogTruncation
@@ -26,9 +29,10 @@ from mcl3d.io.logs.sources import TopicInfo, open_source
 
 KINDS = ("points", "imu", "odom", "gt")
 GT_NAMES = ("ground_truth", "groundtruth", "gt")
-_KIND_TYPES = {"points": (rt.POINTCLOUD2,), "imu": (rt.IMU,), "odom": (rt.ODOMETRY,),
+_KIND_TYPES = {"points": rt.POINT_TYPES, "imu": (rt.IMU,), "odom": (rt.ODOMETRY,),
                "gt": rt.GT_TYPES}
-_KIND_WORDS = {"points": "point cloud (sensor_msgs/PointCloud2)", "imu": "IMU (sensor_msgs/Imu)",
+_KIND_WORDS = {"points": "point cloud (sensor_msgs/PointCloud2 or Livox CustomMsg)",
+               "imu": "IMU (sensor_msgs/Imu)",
                "odom": "odometry (nav_msgs/Odometry)",
                "gt": "ground-truth (PoseStamped, PoseWithCovarianceStamped or Odometry named "
                      "ground_truth, groundtruth or gt)"}
@@ -46,6 +50,20 @@ class TopicSelection:
 
     def get(self, kind: str) -> str | None:
         return getattr(self, kind)
+
+
+@contextmanager
+def standard_fields(path: Path, topic: str, msgtype: str) -> Iterator[None]:
+    """Converting a message that lacks a field of its type or holds one of another type (the
+    log's definition of the type is damaged or not the standard one) raises a LogFormatError
+    naming the topic, instead of a traceback."""
+    try:
+        yield
+    except (AttributeError, TypeError, ValueError, KeyError, IndexError) as exc:
+        raise LogFormatError(f"{path}: a message on {topic} does not hold the fields of "
+                             f"{rt.short_type(msgtype)} ({type(exc).__name__}: {exc}); the "
+                             "log's definition of that type is damaged or not the standard "
+                             "one") from None
 
 
 def _is_gt_name(topic: str) -> bool:
@@ -69,6 +87,9 @@ class LogReader:
             selected = {kind: self._select(kind, chosen[kind], chosen) for kind in KINDS}
             self.topics = TopicSelection(**selected)
             self.faults.truncation = self._truncation()
+            self.faults.damage = getattr(self._source, "skipped", None)
+            if self.faults.damage is not None:
+                self.faults.damage.points_topic = self.topics.points
         except BaseException:
             self._source.close()
             raise
@@ -155,14 +176,15 @@ class LogReader:
         for topic, _log_ns, msg in self._source.messages(list(by_topic)):
             counters[topic] += 1
             for kind in by_topic[topic]:
-                converted = self._convert(kind, topic, msg, counters[topic])
+                with standard_fields(self.path, topic, self.all_topics[topic].msgtype):
+                    converted = self._convert(kind, topic, msg, counters[topic])
                 if sound.keep(kind, converted):
                     yield kind, converted
 
     def _convert(self, kind: str, topic: str, msg, index: int):
         msgtype = self.all_topics[topic].msgtype
         if kind == "points":
-            return rt.to_pointcloud(msg, f"{self.path} topic {topic} message {index}")
+            return rt.to_scan(msg, msgtype, f"{self.path} topic {topic} message {index}")
         if kind == "imu":
             return rt.to_imu(msg)
         if kind == "odom":
@@ -199,7 +221,9 @@ class LogReader:
         dynamic: dict[tuple[str, str], Transform | None] = {}
         for topic, _log_ns, msg in self._source.messages(tf_topics):
             is_static = topic.rstrip("/").endswith("tf_static")
-            for tf in rt.to_transforms(msg):
+            with standard_fields(self.path, topic, rt.TF_MESSAGE):
+                transforms = rt.to_transforms(msg)
+            for tf in transforms:
                 key = (tf.parent_frame, tf.child_frame)
                 if is_static:
                     static[key] = tf

@@ -12,7 +12,7 @@ import numpy as np
 from rosbags.typesys import Stores, get_typestore
 
 from mcl3d.core.geometry import se3_from_tq, tq_from_se3
-from mcl3d.io.logs import pointcloud2
+from mcl3d.io.logs import livox, pointcloud2
 from mcl3d.io.logs.messages import Imu, Odometry, PointCloud, PoseStamped, Transform
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
@@ -22,6 +22,7 @@ POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 POSE_COV_STAMPED = "geometry_msgs/msg/PoseWithCovarianceStamped"
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 GT_TYPES = (POSE_STAMPED, ODOMETRY, POSE_COV_STAMPED)
+POINT_TYPES = (POINTCLOUD2, *livox.CUSTOM_MSG_TYPES)  # what a scan topic may hold
 
 
 def normalize_type(name: str) -> str:
@@ -39,8 +40,11 @@ def short_type(name: str) -> str:
 
 @cache
 def ros2_typestore():
-    """The ROS 2 Humble type store: the definitions our writer embeds and serializes with."""
-    return get_typestore(Stores.ROS2_HUMBLE)
+    """The ROS 2 Humble type store: the definitions our writer embeds and serializes with,
+    and those used for bags that embed none (plus livox_ros_driver2's, for Livox bags)."""
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    store.register(livox.ros2_types())
+    return store
 
 
 def stamp_ns(msg) -> int:
@@ -68,6 +72,13 @@ def to_pointcloud(msg, where: str) -> PointCloud:
         is_bigendian=bool(msg.is_bigendian), point_step=int(msg.point_step),
         row_step=int(msg.row_step), data=msg.data, is_dense=bool(msg.is_dense))
     return pointcloud2.decode(body, stamp_ns(msg), msg.header.frame_id, where)
+
+
+def to_scan(msg, msgtype: str, where: str) -> PointCloud:
+    """A scan from any of `POINT_TYPES` (Livox CustomMsg or PointCloud2)."""
+    if msgtype in livox.CUSTOM_MSG_TYPES:
+        return livox.to_pointcloud(msg)
+    return to_pointcloud(msg, where)
 
 
 def to_imu(msg) -> Imu:

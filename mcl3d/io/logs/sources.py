@@ -3,11 +3,14 @@
 Two sources cover every supported format: `McapSource` (MCAP files, ROS 2 CDR or ROS 1
 encoding, types registered from the schemas stored in the file) and `RosbagsSource`
 (ROS 1 .bag files and ROS 2 bag folders, sqlite3 or MCAP, through rosbags' AnyReader).
-Both (and `kitti_folder.KittiFolderSource`) yield `rosbags` message objects, so conversion
-to mcl3d dataclasses is shared.
+Both (and `kitti_folder.KittiFolderSource`, `ouster_source.OusterPcapSource`) yield `rosbags`
+message objects, so conversion to mcl3d dataclasses is shared; Livox CustomMsg scans of the
+standard definition are decoded straight from their bytes instead (`livox.LivoxScan`).
 Any failure of the underlying libraries becomes a `LogFormatError` naming the file, except
-an MCAP damaged after its first message (a recorder killed mid-chunk, an incomplete copy):
-like `mcap recover`, it is read up to the damage, and `damage` says how much was read.
+an MCAP damaged after its first message: like `mcap recover`, a cut one (a recorder killed
+mid-chunk, an incomplete copy) is read up to the cut, and `damage` says how much was read;
+damaged stretches in the middle (garbage, a bad CRC, zeros) are skipped, reading on at the
+next intact chunk, and gathered in `skipped` (see `mcap_recovery.py`).
 """
 
 from __future__ import annotations
@@ -19,18 +22,21 @@ from pathlib import Path
 import yaml
 from mcap.reader import make_reader
 from mcap.records import Channel, Header, Message, Schema, Statistics
-from mcap.stream_reader import StreamReader
 from mcap.summary import Summary
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
 
 from mcl3d.core.errors import LogFormatError, Mcl3dError
-from mcl3d.io.logs.mcap_recovery import partial_chunk_records
+from mcl3d.io.logs import livox
+from mcl3d.io.logs.faults import DamagedStretch, LogDamage
+from mcl3d.io.logs.mcap_index import chunk_heads_agree, indexed_messages, lost_between
+from mcl3d.io.logs.mcap_recovery import IntactRecords, Stretch
 from mcl3d.io.logs.ros_types import normalize_type, ros2_typestore
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
-SUPPORTED = ("MCAP files (.mcap), ROS 1 .bag files, ROS 2 bag folders and KITTI odometry "
-             "folders")
+SUPPORTED = ("MCAP files (.mcap), ROS 1 .bag files, ROS 2 bag folders, KITTI odometry "
+             "folders and Ouster .pcap files (with their metadata JSON)")
+PCAP_MAGICS = (b"\xd4\xc3\xb2\xa1", b"\x4d\x3c\xb2\xa1", b"\xa1\xb2\xc3\xd4", b"\xa1\xb2\x3c\x4d")
 
 
 @dataclass
@@ -78,6 +84,10 @@ def open_source(path: Path):
         return open_source(path.parent)
     with open(path, "rb") as f:
         magic = f.read(len(MCAP_MAGIC))
+    if path.suffix.lower() == ".pcap" or magic[:4] in PCAP_MAGICS:
+        from mcl3d.io.logs.ouster_source import OusterPcapSource  # it builds on this module
+
+        return OusterPcapSource(path)
     if path.suffix == ".bag" or magic.startswith(b"#ROSBAG"):
         if not magic.startswith(b"#ROSBAG"):
             raise LogFormatError(f"{path}: not a ROS 1 bag (no #ROSBAG header); mcl3d reads "
@@ -93,20 +103,22 @@ def open_source(path: Path):
 
 
 class McapSource:
-    """An MCAP file, read through its summary and chunk indexes (streamed chunk by chunk); one
-    that does not end with the MCAP magic bytes (truncated) is streamed up to its damage."""
+    """An MCAP file, read through its summary and chunk indexes (chunk by chunk, each checked);
+    one that does not end with the MCAP magic bytes (truncated), or whose summary is damaged or
+    points into damage, is streamed, past damaged stretches, up to its end or its cut."""
 
     def __init__(self, path: Path, complete: bool = True):
         self.path = path
         self._file = open(path, "rb")  # noqa: SIM115 (closed by close())
+        self._size = path.stat().st_size
         self.damage: StreamDamage | None = None
+        self.skipped = LogDamage(self._size)  # damaged stretches met so far, over every pass
         self._reader = None
+        self._distrusted: Summary | None = None  # a summary pointing into damage
         summary = None
         try:
             if complete:
-                self._reader = make_reader(self._file)
-                header = self._reader.get_header()
-                summary = self._reader.get_summary()
+                header, summary = self._indexed_summary()
             if summary is None or not summary.channels or summary.statistics is None:
                 header, summary = self._scan_summary()
         except Mcl3dError:
@@ -117,12 +129,9 @@ class McapSource:
             raise _corrupt(path, exc) from None
         self.profile = header.profile or "-"
         self.library = header.library or "-"
-        self.format = f"MCAP ({self.profile})"
-        if self.damage is not None:
-            self.format = (f"MCAP ({self.profile}; truncated or damaged at byte "
-                           f"{self.damage.damaged_at_byte:,}: read up to it)")
         self._decoders: dict[int, Callable] = {}
         self._indexed = self._reader is not None and bool(summary.chunk_indexes)
+        self._summary = summary
         self._schemas = summary.schemas
         self._channels = summary.channels
         stats = summary.statistics
@@ -143,13 +152,56 @@ class McapSource:
             if stats:
                 info.count += counts.get(cid, 0)
 
+    @property
+    def format(self) -> str:
+        """The format, with the damage met so far."""
+        notes = []
+        if self.damage is not None:
+            notes.append(f"truncated or damaged at byte {self.damage.damaged_at_byte:,}: "
+                         "read up to it")
+        if self.skipped.stretches:
+            n = len(self.skipped.stretches)
+            notes.append(f"{n} damaged stretch{'es' * (n != 1)} skipped")
+        return f"MCAP ({'; '.join([self.profile, *notes])})"
+
+    def _indexed_summary(self) -> tuple[Header | None, Summary | None]:
+        """Header and summary of a complete file, read through its footer; no summary when it
+        is damaged or its chunk indexes point into damage (the file is then streamed)."""
+        try:
+            self._reader = make_reader(self._file)
+            header = self._reader.get_header()
+            summary = self._reader.get_summary()
+        except Exception:  # a damaged header, footer or summary: the data section may be whole
+            self._reader = None
+            return None, None
+        if summary is not None and not chunk_heads_agree(self._file, summary, self._size):
+            self._reader, self._distrusted = None, summary  # it still counts what is lost
+            return None, None
+        return header, summary
+
+    def _note_stretch(self, stretch: Stretch, channels: dict[int, str]) -> None:
+        """A damaged stretch, its messages lost counted by topic (the channels seen so far)."""
+        summaries = [getattr(self, "_channels", {}),
+                     self._distrusted.channels if self._distrusted else {}]
+        known = {cid: ch.topic for chans in summaries for cid, ch in chans.items()}
+        by_channel = stretch.lost_by_channel
+        if by_channel is None and self._distrusted is not None:
+            by_channel = lost_between(self._file, self._distrusted, stretch.start_byte,
+                                      stretch.end_byte)
+        lost = None
+        if by_channel is not None:
+            lost = {}
+            for cid, n in by_channel.items():
+                topic = channels.get(cid) or known.get(cid, "?")
+                lost[topic] = lost.get(topic, 0) + n
+        self.skipped.add(DamagedStretch(stretch.start_byte, stretch.end_byte, lost))
+
     def _records(self) -> Iterator[object]:
-        """The records in file order, up to the end or the first damage (then
-        the whole records of the damaged chunk); a damage is recorded in `damage`, or raised
-        when no message comes before it. Each pass has its own file handle: passes may nest
-        (static transforms read during a scan pass)."""
-        size = self.path.stat().st_size
-        good, counts, channels = 0, {}, {}
+        """The records in file order, past damaged stretches (gathered in `skipped`), up to the
+        end or a cut (then the whole records of the cut chunk); a cut is recorded in `damage`,
+        or raised when no message comes before it. Each pass has its own file handle: passes
+        may nest (static transforms read during a scan pass)."""
+        counts, channels = {}, {}
 
         def seen(record) -> None:
             if isinstance(record, Channel):
@@ -158,22 +210,16 @@ class McapSource:
                 topic = channels.get(record.channel_id, "?")
                 counts[topic] = counts.get(topic, 0) + 1
 
-        try:
-            with open(self.path, "rb") as f:
-                for record in StreamReader(f, record_size_limit=size).records:
-                    seen(record)
-                    good = f.tell()
-                    yield record
-        except Exception as exc:
-            detail = (str(exc).strip() or type(exc).__name__).splitlines()[0][:160]
-            for record in partial_chunk_records(self.path, good):
-                seen(record)
-                yield record
+        intact = IntactRecords(self.path, lambda s: self._note_stretch(s, channels))
+        for record in intact:
+            seen(record)
+            yield record
+        if intact.cut_at is not None:
             if not counts:
                 raise LogFormatError(f"{self.path}: the log is truncated or damaged before its "
-                                     f"first message ({detail}); nothing in it can be read. "
-                                     "Re-copy or re-record it.") from None
-            self.damage = StreamDamage(good, size, counts, detail)
+                                     f"first message ({intact.detail[:160]}); nothing in it can "
+                                     "be read. Re-copy or re-record it.")
+            self.damage = StreamDamage(intact.cut_at, self._size, counts, intact.detail)
 
     def _scan_summary(self) -> tuple[Header, Summary]:
         """A log without a (complete) summary: one streaming pass to learn channels and counts."""
@@ -195,7 +241,7 @@ class McapSource:
                     stats.message_start_time = record.log_time
                 stats.message_end_time = max(stats.message_end_time, record.log_time)
                 stats.message_count += 1
-        if self.damage is not None:
+        if self.damage is not None or self.skipped.stretches:
             self._reader = None  # its indexes would lead into the damage
         summary.statistics = stats
         return header, summary
@@ -240,12 +286,16 @@ class McapSource:
         except Exception as exc:
             raise LogFormatError(f"{self.path}: the message definition of {schema.name} on "
                                  f"{ch.topic} cannot be parsed ({exc})") from None
-        if ch.message_encoding == "cdr":
+        if ch.message_encoding not in ("cdr", "ros1"):
+            raise LogFormatError(f"{self.path}: topic {ch.topic} uses message encoding "
+                                 f"{ch.message_encoding!r}; mcl3d reads cdr (ROS 2) and ros1")
+        cdr = ch.message_encoding == "cdr"
+        fast = livox.fast_decoder(store.fielddefs, name, cdr)
+        if fast is not None:
+            return fast
+        if cdr:
             return lambda data: store.deserialize_cdr(data, name)
-        if ch.message_encoding == "ros1":
-            return lambda data: store.deserialize_ros1(data, name)
-        raise LogFormatError(f"{self.path}: topic {ch.topic} uses message encoding "
-                             f"{ch.message_encoding!r}; mcl3d reads cdr (ROS 2) and ros1")
+        return lambda data: store.deserialize_ros1(data, name)
 
     def messages(self, topics: list[str], reverse: bool = False
                  ) -> Iterator[tuple[str, int, object]]:
@@ -254,11 +304,13 @@ class McapSource:
         if reverse and not self._indexed:
             raise NotImplementedError("reverse reading needs an MCAP with chunk indexes")
         try:
-            if self._reader is None:
+            if not self._indexed:
                 it = self._streamed(topics)
             else:
-                it = ((c, m) for _s, c, m in self._reader.iter_messages(
-                    topics=topics, log_time_order=True, reverse=reverse))
+                ids = {cid for cid, ch in self._channels.items() if ch.topic in topics}
+                it = ((self._channels[m.channel_id], m) for m in indexed_messages(
+                    self._file, self._summary, self._size, ids, reverse,
+                    lambda s: self._note_stretch(s, {})))
             for channel, message in it:
                 decode = self._decoder(channel.id)
                 try:
@@ -315,10 +367,14 @@ class RosbagsSource:
         if reverse:
             raise NotImplementedError("rosbags sources stream forward only")
         conns = [c for t in topics for c in self.topics[t].handles]
+        fast = {c.msgtype: livox.fast_decoder(self._reader.typestore.fielddefs, c.msgtype,
+                                              self._reader.is2) for c in conns}
         try:
             for conn, stamp, raw in self._reader.messages(connections=conns):
                 try:
-                    msg = self._reader.deserialize(raw, conn.msgtype)
+                    decode = fast[conn.msgtype]
+                    msg = (decode(raw) if decode is not None
+                           else self._reader.deserialize(raw, conn.msgtype))
                 except Exception as exc:
                     raise LogFormatError(f"{self.path}: a message on {conn.topic} at {stamp} ns "
                                          f"cannot be decoded ({exc}); the bag is corrupt") from None

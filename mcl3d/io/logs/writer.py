@@ -27,8 +27,9 @@ CHUNK_SIZE = 4 * 1024 * 1024
 class LogWriter:
     """Context manager writing one ROS 2 MCAP log; see the module docstring."""
 
-    def __init__(self, path: Path, *, force: bool = False):
+    def __init__(self, path: Path, *, force: bool = False, chunk_size: int = CHUNK_SIZE):
         self.path = Path(path)
+        self._chunk_size = chunk_size  # bytes of records per chunk (a recorder's setting)
         check_writable(self.path, force)
         self._stack: contextlib.ExitStack | None = None
         self._mcap = None
@@ -40,7 +41,8 @@ class LogWriter:
         self._stack = contextlib.ExitStack()
         tmp = self._stack.enter_context(atomic_path(self.path))
         stream = self._stack.enter_context(open(tmp, "wb"))
-        self._mcap = McapWriter(stream, chunk_size=CHUNK_SIZE, compression=CompressionType.ZSTD)
+        self._mcap = McapWriter(stream, chunk_size=self._chunk_size,
+                                compression=CompressionType.ZSTD)
         self._mcap.start(profile="ros2", library=f"mcl3d {__version__}")
         return self
 
