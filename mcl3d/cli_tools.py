@@ -1,5 +1,6 @@
 """The commands around the estimators: inspect logs and maps, evaluate trajectories, simulate,
-run the demo. `cli.py` registers them on the app; heavy imports stay inside each command.
+run the demo, run a manifest of runs on Ray. `cli.py` registers them on the app; heavy imports
+stay inside each command.
 """
 
 from __future__ import annotations
@@ -95,8 +96,9 @@ def eval_trajectory(
 
 
 def info(
-    log: Annotated[Path, typer.Argument(help="MCAP file, ROS 1 .bag file, ROS 2 bag folder or "
-                                        "KITTI sequence folder.", metavar="LOG",
+    log: Annotated[Path, typer.Argument(help="MCAP file, ROS 1 .bag file, ROS 2 bag folder, "
+                                        "KITTI sequence folder or Ouster .pcap (with its "
+                                        "metadata JSON beside it).", metavar="LOG",
                                         show_default=False)],
     points_topic: PointsTopicOption = None,
     imu_topic: ImuTopicOption = None,
@@ -211,5 +213,46 @@ def demo(
             console.print(renderable)
 
 
+def batch(
+    manifest: Annotated[Path, typer.Argument(
+        help="YAML manifest: jobs of a command on a log with settings, seeds and particle "
+             "counts (docs/batch.md).")],
+    out: Annotated[Path, typer.Option(
+        "-o", "--out", help="Output folder: <job>/<run>/ per run, results.csv, results.json "
+                            "and the pictures.")],
+    workers: Annotated[int | None, typer.Option(
+        min=1, help="Runs at once on the local Ray (default: one per CPU).",
+        show_default=False)] = None,
+    address: Annotated[str | None, typer.Option(
+        help='Run on this Ray cluster ("auto", "ray://head:10001") instead of a local Ray.',
+        show_default=False)] = None,
+    retries: Annotated[int, typer.Option(
+        min=0, help="Times a run whose process crashed is tried again.")] = 1,
+    force: Annotated[bool, typer.Option("--force", help="Overwrite existing outputs.")] = False,
+    backend: BackendOption = None,
+) -> None:
+    """Run a manifest's jobs (logs x seeds x particle counts) on Ray, each run in its own
+    process, and tabulate them: one row per run."""
+    from rich.table import Table
+
+    from mcl3d.batch.pipeline import BatchRequest, run, summary_rows
+    from mcl3d.batch.results import job_rows
+    from mcl3d.console import ProgressBars, console, summary_table
+
+    request = BatchRequest(manifest, out, workers=workers, address=address, retries=retries,
+                           backend=backend or Globals.backend, force=force)
+    with ProgressBars() as bars:
+        result = run(request, bars.on_progress)
+    jobs = Table(title="Jobs", title_justify="left")
+    for column in ("job", "command", "runs ok", "success", "median ATE (m)"):
+        jobs.add_column(column)
+    for row in job_rows(result.rows):
+        jobs.add_row(*row)
+    console.print(jobs)
+    console.print(summary_table("Batch", summary_rows(result)))
+    for row in [r for r in result.rows if r["status"] != "ok"][:5]:
+        console.print(f"[yellow]failed:[/] {row['job']}/{row['run']}: {row['error']}")
+
+
 COMMANDS = (("backends", backends), ("eval", eval_trajectory), ("info", info),
-            ("simulate", simulate), ("map-info", map_info), ("demo", demo))
+            ("simulate", simulate), ("map-info", map_info), ("demo", demo), ("batch", batch))
