@@ -22,8 +22,12 @@ from mcl3d.cli_options import (
     BACKEND_HELP,
     BackendOption,
     Globals,
+    LiveOption,
+    LivePortOption,
+    ResultMcapOption,
     check_backend,
     init_backend,
+    live_port,
     print_notes,
 )
 from mcl3d.core.errors import Mcl3dError, RunInterrupted
@@ -93,8 +97,9 @@ for _name, _command in cli_tools.COMMANDS:
 @app.command("build-map")
 def build_map(
     source: Annotated[Path, typer.Argument(
-        help="A log (MCAP, ROS bag, KITTI folder) with ground truth or --trajectory, a point-cloud "
-             "map (.pcd/.ply/.bin), a mesh (.ply/.obj/.stl/.off/.glb) or a HATSDF map (.h5).")],
+        help="A log (MCAP, ROS bag, KITTI folder, Ouster .pcap) with ground truth or "
+             "--trajectory, a point-cloud map (.pcd/.ply/.bin), a mesh (.ply/.obj/.stl/.off/.glb) "
+             "or a HATSDF map (.h5).")],
     output: Annotated[Path, typer.Option("-o", "--output", help="The map file to write "
                                          "(.tsdf).")],
     trajectory: Annotated[Path | None, typer.Option(
@@ -186,7 +191,7 @@ def _localize_overrides(init: str, init_std: str | None, particles: int | None,
 @app.command()
 def localize(
     log: Annotated[Path, typer.Argument(help="Log with LiDAR scans (MCAP, ROS 1 bag, ROS 2 bag, "
-                                        "KITTI folder).")],
+                                        "KITTI folder, Ouster .pcap).")],
     map_file: Annotated[Path, typer.Option("--map", help="TSDF map (.tsdf) from build-map.")],
     out: Annotated[Path, typer.Option("-o", "--out", help="Output folder.")],
     init: Annotated[str, typer.Option(
@@ -219,8 +224,9 @@ def localize(
     imu_topic: Annotated[str | None, typer.Option(help="IMU topic.")] = None,
     odom_topic: Annotated[str | None, typer.Option(help="Odometry topic.")] = None,
     gt_topic: Annotated[str | None, typer.Option(help="Ground-truth topic.")] = None,
-    result_mcap: Annotated[Path | None, typer.Option(
-        help="Also write pose, particles and aligned scan to this MCAP (Foxglove).")] = None,
+    result_mcap: ResultMcapOption = None,
+    live: LiveOption = False,
+    port: LivePortOption = 8765,
     force: Annotated[bool, typer.Option(help="Overwrite existing outputs.")] = False,
     backend: BackendOption = None,
 ) -> None:
@@ -240,7 +246,8 @@ def localize(
     info = init_backend(backend)
     request = LocalizeRequest(log=log, map=map_file, output_dir=out, config=cfg, preset=preset,
                               topics=Topics(points_topic, imu_topic, odom_topic, gt_topic),
-                              force=force, result_mcap=result_mcap, backend=info.requested)
+                              force=force, result_mcap=result_mcap,
+                              live_port=live_port(live, port), backend=info.requested)
     with ProgressBars() as bars:
         result = run(request, on_progress=bars.on_progress)
     s = result.summary
@@ -251,8 +258,8 @@ def localize(
 @app.command()
 def odometry(
     log: Annotated[Path, typer.Argument(help="Log with LiDAR scans (MCAP, ROS 1 bag, ROS 2 bag, "
-                                        "KITTI folder). IMU and ground truth are used when "
-                                        "present.")],
+                                        "KITTI folder, Ouster .pcap). IMU and ground truth are "
+                                        "used when present.")],
     out: Annotated[Path, typer.Option("-o", "--out", help="Output folder: odometry.tum, "
                                       "odometry_kitti.txt, relative_motion.npz, "
                                       "odometry_summary.json, odometry_config.yaml.")],
@@ -272,6 +279,9 @@ def odometry(
     points_topic: Annotated[str | None, typer.Option(help="Point-cloud topic.")] = None,
     imu_topic: Annotated[str | None, typer.Option(help="IMU topic.")] = None,
     gt_topic: Annotated[str | None, typer.Option(help="Ground-truth topic.")] = None,
+    result_mcap: ResultMcapOption = None,
+    live: LiveOption = False,
+    port: LivePortOption = 8765,
     force: Annotated[bool, typer.Option(help="Overwrite existing outputs.")] = False,
     backend: BackendOption = None,
 ) -> None:
@@ -290,7 +300,9 @@ def odometry(
     with ProgressBars() as bars:
         result = run(OdometryRequest(log=log, output_dir=out, config=cfg, force=force,
                                      points_topic=points_topic, imu_topic=imu_topic,
-                                     gt_topic=gt_topic, max_scans=max_scans), bars.on_progress)
+                                     gt_topic=gt_topic, max_scans=max_scans,
+                                     result_mcap=result_mcap, live_port=live_port(live, port)),
+                     bars.on_progress)
     s = result.summary
     console.print(summary_table("Odometry", summary_rows(s, f"{info.backend} ({info.device})",
                                                           out)))
@@ -300,8 +312,8 @@ def odometry(
 @app.command()
 def slam(
     log: Annotated[Path, typer.Argument(help="Log with LiDAR scans (MCAP, ROS 1 bag, ROS 2 bag, "
-                                        "KITTI folder). IMU and ground truth are used when "
-                                        "present.")],
+                                        "KITTI folder, Ouster .pcap). IMU and ground truth are "
+                                        "used when present.")],
     out: Annotated[Path, typer.Option("-o", "--out", help="Output folder: slam.tum, "
                                       "slam_kitti.txt, slam_online.tum, odometry.tum, map.ply, "
                                       "frames.csv, slam_summary.json, slam_config.yaml.")],
@@ -323,6 +335,9 @@ def slam(
     points_topic: Annotated[str | None, typer.Option(help="Point-cloud topic.")] = None,
     imu_topic: Annotated[str | None, typer.Option(help="IMU topic.")] = None,
     gt_topic: Annotated[str | None, typer.Option(help="Ground-truth topic.")] = None,
+    result_mcap: ResultMcapOption = None,
+    live: LiveOption = False,
+    port: LivePortOption = 8765,
     force: Annotated[bool, typer.Option(help="Overwrite existing outputs.")] = False,
     backend: BackendOption = None,
 ) -> None:
@@ -342,7 +357,8 @@ def slam(
     with ProgressBars() as bars:
         result = run(SlamRequest(log=log, output_dir=out, config=cfg, force=force,
                                  points_topic=points_topic, imu_topic=imu_topic,
-                                 gt_topic=gt_topic, max_scans=max_scans, tsdf=tsdf),
+                                 gt_topic=gt_topic, max_scans=max_scans, tsdf=tsdf,
+                                 result_mcap=result_mcap, live_port=live_port(live, port)),
                      bars.on_progress)
     rows = summary_rows(result.summary, f"{info.backend} ({info.device})", out,
                         result.tsdf.path if result.tsdf else None)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Annotated
 
 import typer
@@ -62,6 +63,25 @@ GtTopicOption = Annotated[str | None, typer.Option(
                        "groundtruth or gt).")]
 JsonOption = Annotated[bool, typer.Option("--json", help="Print the facts as one JSON document "
                                           "instead (keys: docs/json-output.md).")]
+
+# Foxglove results of the commands that estimate poses (docs/foxglove.md).
+ResultMcapOption = Annotated[Path | None, typer.Option(
+    "--result-mcap", dir_okay=False, help="Also write the run's results for Foxglove (scans, "
+    "estimate, particles, hypotheses, map) to this MCAP (docs/foxglove.md).")]
+LiveOption = Annotated[bool, typer.Option(
+    "--live", help="Serve the same results live to Foxglove (WebSocket) while the run goes.")]
+LivePortOption = Annotated[int, typer.Option("--live-port", min=1, max=65535,
+                                             help="Port of the --live server (127.0.0.1).")]
+
+
+def live_port(live: bool, port: int) -> int | None:
+    """The --live port, None when off (then nothing of the live view is made)."""
+    if not live:
+        return None
+    from mcl3d.console import console
+
+    console.print(f"live view: ws://127.0.0.1:{port} (in Foxglove: Open connection)")
+    return port
 
 
 def print_notes(notes: list[str], warnings: list[str], num_warnings: int,

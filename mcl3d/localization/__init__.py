@@ -6,5 +6,6 @@ of `sensor_model` on the device), estimate (`estimate`), resample (`resampling`)
 resampling), `state` the filter state and per-scan result, `localization_config` the
 parameters.
 `pipeline.run` localizes a log (`log_inputs`: motion source, gravity, initial pose;
-`output_files` and `localization_summary`: what a run writes and reports).
+`output_files` and `localization_summary`: what a run writes and reports; `result_view`:
+what it shows in Foxglove).
 """

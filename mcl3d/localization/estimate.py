@@ -190,7 +190,6 @@ class PoseEstimate:
     dominant: bool  # the heaviest cluster is heavy and compact enough to be converged
     match_ratio: float  # weighted mean fraction of scan points on a surface
     mean_log_likelihood: float  # weighted mean per-point log-likelihood
-    sample_positions: np.ndarray  # (k, 3) float32 the clustered subsample (visualization)
 
 
 def systematic_sample(weights: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:
@@ -220,8 +219,7 @@ def estimate_pose(cloud: WeightedParticles, cfg: EstimateConfig, rng: np.random.
         T_map_lidar=h0.T_map_lidar, T_best=T_best, covariance=h0.covariance,
         hypotheses=strong or hyps[:1], clusters=hyps,
         dominant=h0.weight >= cfg.converged_weight and compact,
-        match_ratio=float(w @ cloud.match), mean_log_likelihood=float(w @ cloud.mean_ll),
-        sample_positions=pos[idx].astype(np.float32))
+        match_ratio=float(w @ cloud.match), mean_log_likelihood=float(w @ cloud.mean_ll))
 
 
 def with_mean_of_all(estimate: PoseEstimate, cloud: WeightedParticles) -> PoseEstimate:

@@ -14,7 +14,7 @@ from mcl3d.evaluation.metrics import evaluate
 from mcl3d.evaluation.run_plots import LOCALIZE_PICTURE
 from mcl3d.io.logs.faults import LogFaults
 from mcl3d.io.trajectory import Trajectory
-from mcl3d.localization.state import STAGES, FilterState, LocalizationResult
+from mcl3d.localization.state import STAGES, FilterState, ScanRecord
 
 OPTIONAL_KEYS = ("ate_all", "ate_after_convergence", "ate_rmse_m_evo")  # only with ground truth
 
@@ -72,7 +72,7 @@ def _errors(ref: np.ndarray, est: np.ndarray) -> GroundTruthErrors:
                       rotation_max_deg=float(ang.max()), poses=len(d))
 
 
-def summarize(res: list[LocalizationResult], summary: LocalizeSummary, gt) -> None:
+def summarize(res: list[ScanRecord], summary: LocalizeSummary, gt) -> None:
     """Add the errors against the ground truth `gt` (stamps ns, poses) to `summary`: over all
     scans, and from the scan the filter converged on."""
     if gt is None or len(res) < 2:
@@ -96,7 +96,7 @@ def summarize(res: list[LocalizationResult], summary: LocalizeSummary, gt) -> No
                      max_diff_s=1e-3).ate.translation_m.rmse)
 
 
-def convergence(res: list[LocalizationResult]) -> tuple[int | None, float | None, float]:
+def convergence(res: list[ScanRecord]) -> tuple[int | None, float | None, float]:
     """(first converged scan, seconds after the first scan, share of converged scans)."""
     states = [r.state for r in res]
     conv = next((i for i, s in enumerate(states) if s == FilterState.CONVERGED), None)
@@ -104,7 +104,7 @@ def convergence(res: list[LocalizationResult]) -> tuple[int | None, float | None
     return conv, after_s, float(np.mean([s == FilterState.CONVERGED for s in states]))
 
 
-def stage_means(res: list[LocalizationResult]) -> dict[str, float]:
+def stage_means(res: list[ScanRecord]) -> dict[str, float]:
     """Mean ms per stage and in total, warm: the first update also compiles the kernels."""
     warm = res[1:] or res
     stages = {s: float(np.mean([r.timings_ms[s] for r in warm])) for s in STAGES}

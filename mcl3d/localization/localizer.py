@@ -78,7 +78,7 @@ class Localizer:
         self.imu_roll_pitch = imu_roll_pitch
         self.step_index = 0
         self.ever_converged = False
-        self.last_sample_positions = np.zeros((0, 3), np.float32)  # for visualization
+        self.last_cloud: WeightedParticles | None = None  # the last update's, to show
         self.search = GlobalSearch(config)
         self.recovery = Recovery(config.recovery)
         self.evidence = PlaceEvidence()
@@ -269,7 +269,7 @@ class Localizer:
         after the coarse phase, with no rival mode, after motion)."""
         estimate = estimate_pose(cloud, self.cfg.estimate,
                                  host_rng(self.seed, self.step_index, ESTIMATE_SAMPLE_STREAM))
-        self.last_sample_positions = estimate.sample_positions
+        self.last_cloud = cloud
         if self.cfg.estimate.mean == "all":
             estimate = with_mean_of_all(estimate, cloud)
         self.search.update_modes(cloud, estimate.clusters,

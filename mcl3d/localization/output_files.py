@@ -16,7 +16,7 @@ from mcl3d.core.outputs import atomic_open, check_writable
 from mcl3d.evaluation.run_plots import LOCALIZE_PICTURE, localize_figure, write_png
 from mcl3d.io.trajectory import Trajectory, write_kitti, write_tum
 from mcl3d.localization.localization_summary import LocalizeSummary
-from mcl3d.localization.state import STAGES, LocalizationResult
+from mcl3d.localization.state import STAGES, ScanRecord
 
 OUTPUT_FILES = {"tum": "trajectory.tum", "kitti": "trajectory.kitti", "csv": "scans.csv",
                 "config": "config.yaml", "summary": "summary.json", "picture": LOCALIZE_PICTURE}
@@ -39,11 +39,11 @@ def check_outputs(out_dir: Path, force: bool, result_mcap: Path | None) -> dict[
     return paths
 
 
-def _csv_row(r: LocalizationResult, motion: str) -> str:
+def _csv_row(r: ScanRecord, motion: str) -> str:
     t, q = geometry.tq_from_se3(r.T_map_lidar)
     ms = [r.timings_ms[s] for s in STAGES]
     row = [f"{r.stamp_s:.9f}", *(f"{v:.6f}" for v in t), *(f"{v:.7f}" for v in q),
-           *(f"{v:.3e}" for v in np.diag(r.covariance)), f"{r.ess:.1f}",
+           *(f"{v:.3e}" for v in r.variances), f"{r.ess:.1f}",
            str(r.n_particles), r.state.value, str(len(r.hypotheses)), str(r.places),
            f"{r.match_ratio:.4f}",
            f"{r.mean_log_likelihood:.4f}", str(r.n_points), str(int(r.resampled)),
@@ -51,7 +51,7 @@ def _csv_row(r: LocalizationResult, motion: str) -> str:
     return ",".join(row)
 
 
-def write_outputs(paths: dict[str, Path], results: list[LocalizationResult],
+def write_outputs(paths: dict[str, Path], results: list[ScanRecord],
                   motion_kinds: list[str], summary: LocalizeSummary, cfg: Section,
                   stamps_ns: list[int] | None = None, map_points: np.ndarray | None = None,
                   gt: Trajectory | None = None, map_cell_m: float = 0.0) -> None:

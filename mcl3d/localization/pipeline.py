@@ -11,7 +11,6 @@ checkpoint are written, so a crash keeps them; the final outputs replace them.
 
 from __future__ import annotations
 
-import contextlib
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,11 +24,10 @@ from mcl3d.core.config import Section
 from mcl3d.core.errors import InputError, RunInterrupted
 from mcl3d.core.outputs import output_folder
 from mcl3d.core.progress import Progress, ProgressCallback, report
+from mcl3d.io.foxglove_results import open_results
 from mcl3d.io.logs.faults import LogFaults
-from mcl3d.io.logs.messages import PointCloud, PoseStamped
 from mcl3d.io.logs.plausibility import check_scans
 from mcl3d.io.logs.reader import LogReader
-from mcl3d.io.logs.writer import LogWriter
 from mcl3d.io.trajectory import Trajectory
 from mcl3d.localization.initialization import auto_band
 from mcl3d.localization.localization_config import LocalizerConfig, check_config
@@ -48,8 +46,9 @@ from mcl3d.localization.log_inputs import (
 )
 from mcl3d.localization.motion_source import MotionSource, MotionSourceConfig
 from mcl3d.localization.output_files import check_outputs, write_checkpoint, write_outputs
+from mcl3d.localization.result_view import LocalizeView
 from mcl3d.localization.sensor_model import MIN_SCAN_POINTS
-from mcl3d.localization.state import EmptyScan, FilterState, LocalizationResult
+from mcl3d.localization.state import EmptyScan, FilterState, LocalizationResult, ScanRecord
 from mcl3d.maps.map_file import load_map
 from mcl3d.maps.tsdf import surface_points
 
@@ -64,7 +63,8 @@ class LocalizeConfig(Section):
     localizer: LocalizerConfig = LocalizerConfig()
     motion_source: MotionSourceConfig = MotionSourceConfig()
     max_scans: int | None = Field(None, ge=1, description="stop after this many scans")
-    result_particles: int = Field(2000, ge=1, description="particles per result-MCAP message")
+    result_particles: int = Field(5000, ge=1, le=5000,
+                                  description="particles per result-MCAP/live message")
     deskew: bool = Field(True, description="deskew scans with per-point times using the "
                                            "motion between scans (constant velocity)")
 
@@ -85,7 +85,8 @@ class LocalizeRequest:
     config: LocalizeConfig = field(default_factory=LocalizeConfig)
     topics: Topics = field(default_factory=Topics)
     force: bool = False  # overwrite existing outputs
-    result_mcap: Path | None = None  # also write pose, particles and aligned scan here
+    result_mcap: Path | None = None  # also write the Foxglove result log here
+    live_port: int | None = None  # serve the same messages live on this port (None: off)
     backend: str = "cpu"
     preset: str = "default"  # the named preset the config started from (recorded only)
 
@@ -94,7 +95,7 @@ class LocalizeRequest:
 class LocalizeResult:
     """What a run produced; `summary` is also summary.json and the CLI's table."""
 
-    results: list[LocalizationResult] = field(default_factory=list)
+    results: list[ScanRecord] = field(default_factory=list)  # per scan, what outputs need
     stamps_ns: list[int] = field(default_factory=list)  # the results' scan stamps, exact
     motion_kinds: list[str] = field(default_factory=list)
     skipped_scans: int = 0
@@ -121,8 +122,8 @@ def _run(req: LocalizeRequest, on_progress: ProgressCallback | None) -> Localize
     info = runtime.init(req.backend)
     tsdf = load_map(Path(req.map), f16=False)
     try:
-        out = _run_filter(req, tsdf, paths, on_progress)
-        map_points = surface_points(tsdf.geometry, tsdf.blocks())  # for the picture
+        map_points = surface_points(tsdf.geometry, tsdf.blocks())  # the picture, the map shown
+        out = _run_filter(req, tsdf, paths, map_points, on_progress)
     finally:
         tsdf.destroy()  # the map's device memory; the particles are small
     if not out.results:
@@ -142,8 +143,8 @@ def _run(req: LocalizeRequest, on_progress: ProgressCallback | None) -> Localize
     return out
 
 
-def _run_filter(req: LocalizeRequest, tsdf, paths: dict[str, Path], on_progress
-                ) -> LocalizeResult:
+def _run_filter(req: LocalizeRequest, tsdf, paths: dict[str, Path], map_points: np.ndarray,
+                on_progress) -> LocalizeResult:
     cfg, topics = req.config, req.topics
     out = LocalizeResult()
     with LogReader(Path(req.log), points_topic=topics.points, imu_topic=topics.imu,
@@ -163,8 +164,11 @@ def _run_filter(req: LocalizeRequest, tsdf, paths: dict[str, Path], on_progress
         out.motion_source = source.kind
         loc = _start_localizer(reader, tsdf, cfg.localizer, firsts, out)
         total = min(n_scans, cfg.max_scans or n_scans)
-        with _result_writer(req.result_mcap, req.force) as writer:
-            loop = _ScanLoop(loc, source, cfg, out, total, writer, on_progress)
+        with open_results(req.result_mcap, req.live_port, req.force, "localize") as pub:
+            view = None if pub is None else LocalizeView(pub, out.gt)
+            if pub is not None:
+                pub.publish_map(firsts["points"].stamp_ns, map_points)
+            loop = _ScanLoop(loc, source, cfg, out, total, view, on_progress)
             loop.checkpoint = Checkpointer(lambda: write_checkpoint(paths, out))
             try:
                 loop.run(reader)
@@ -195,20 +199,14 @@ def _start_localizer(reader, tsdf, cfg: LocalizerConfig, firsts: dict,
     return loc
 
 
-def _result_writer(path: Path | None, force: bool):
-    if path is None:
-        return contextlib.nullcontext(None)
-    return LogWriter(Path(path), force=force)
-
-
 class _ScanLoop:
     """Feeds the log's messages to the motion source and each scan, once the motion
     source covers its stamp, to the filter."""
 
     def __init__(self, loc: Localizer, source: MotionSource, cfg: LocalizeConfig,
-                 out: LocalizeResult, total: int, writer, on_progress):
+                 out: LocalizeResult, total: int, view: LocalizeView | None, on_progress):
         self.loc, self.source, self.cfg, self.out = loc, source, cfg, out
-        self.total, self.writer, self.on_progress = total, writer, on_progress
+        self.total, self.view, self.on_progress = total, view, on_progress
         self.prev_ns: int | None = None
         self.best_match = 0.0
         self.checkpoint: Checkpointer | None = None  # writes the outputs so far now and then
@@ -247,14 +245,15 @@ class _ScanLoop:
             out.skipped_scans += 1
             return False
         self.prev_ns = scan.stamp_ns
-        out.results.append(result)
+        out.results.append(ScanRecord.of(result))
         out.stamps_ns.append(scan.stamp_ns)
         out.motion_kinds.append("none" if motion is None else motion.kind)
         self.source.add_estimate(scan.stamp_ns, result.T_map_lidar,
                                  result.state == FilterState.CONVERGED)
         self._check_overlap(result)
-        if self.writer is not None:
-            self._write_result(scan, result)
+        if self.view is not None:
+            self.view.update(scan.stamp_ns, scan.points, result, self.loc.last_cloud,
+                             out.warnings, self.cfg.result_particles)
         ms = sum(result.timings_ms.values())
         report(self.on_progress, Progress(
             PROGRESS_STAGE, len(out.results), self.total,
@@ -274,16 +273,6 @@ class _ScanLoop:
                 f"after {n} scans no particle's scan matches the map (best match ratio "
                 f"{self.best_match:.2f}): the map and the log are from different places or "
                 f"frames; check the map", setting="map")
-
-    def _write_result(self, scan, result: LocalizationResult) -> None:
-        stamp = scan.stamp_ns
-        self.writer.write_pose("/localization/pose", PoseStamped(stamp, "map",
-                                                                 result.T_map_lidar))
-        sample = self.loc.last_sample_positions[:self.cfg.result_particles]
-        self.writer.write_points("/localization/particles", PointCloud(stamp, "map", sample,
-                                                                       None))
-        aligned = geometry.transform_points(result.T_map_lidar, scan.points).astype(np.float32)
-        self.writer.write_points("/localization/scan", PointCloud(stamp, "map", aligned, None))
 
 
 def _summary(out: LocalizeResult, cfg: LocalizeConfig, info) -> LocalizeSummary:

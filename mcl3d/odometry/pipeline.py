@@ -23,6 +23,7 @@ from mcl3d.core.checkpoint import Checkpointer, write_checkpoint_summary
 from mcl3d.core.errors import Mcl3dError, RunInterrupted
 from mcl3d.core.outputs import atomic_open, check_writable, output_folder
 from mcl3d.core.progress import Progress, ProgressCallback, report
+from mcl3d.io.foxglove_results import open_results
 from mcl3d.io.logs.plausibility import check_scans
 from mcl3d.io.logs.reader import LogReader
 from mcl3d.io.trajectory import Trajectory, write_kitti, write_tum
@@ -33,6 +34,7 @@ from mcl3d.odometry.odometry_summary import (
     evaluate_odometry,
     run_warnings,
 )
+from mcl3d.odometry.result_view import OdometryView
 from mcl3d.odometry.scan_feed import LidarImuFeed
 
 MAX_LISTED_WARNINGS = 100  # the summary lists this many, and counts them all
@@ -71,6 +73,8 @@ class OdometryRequest:
     imu_topic: str | None = None
     gt_topic: str | None = None
     max_scans: int | None = None  # stop after this many scans
+    result_mcap: Path | None = None  # also write the Foxglove result log here
+    live_port: int | None = None  # serve the same messages live on this port (None: off)
 
 
 @dataclass
@@ -94,7 +98,9 @@ def _run(req: OdometryRequest, on_progress: ProgressCallback | None) -> Odometry
         check_writable(path, req.force)
     frames: list[OdometryFrame] = []
     with LogReader(req.log, points_topic=req.points_topic, imu_topic=req.imu_topic,
-                   gt_topic=req.gt_topic) as reader:
+                   gt_topic=req.gt_topic) as reader, open_results(
+            req.result_mcap, req.live_port, req.force, "odometry") as pub:
+        view = None if pub is None else OdometryView(pub)
         reader.require("points")
         check_scans(reader, req.log, needs_3d=True)
         odo: LidarOdometry | None = None
@@ -109,6 +115,8 @@ def _run(req: OdometryRequest, on_progress: ProgressCallback | None) -> Odometry
                     odo = LidarOdometry(cfg)
                 odo.T_lidar_imu = T_lidar_imu
                 frames.append(odo.step(cloud.points, cloud.times_s, cloud.stamp_ns, imu_rows))
+                if view is not None:
+                    view.update(frames[-1], cloud.points, feed.gt_stamps_ns, feed.gt_poses)
                 report(on_progress, Progress("odometry", len(frames), total))
                 checkpoint.tick()
                 if req.max_scans is not None and len(frames) >= req.max_scans:
@@ -118,6 +126,8 @@ def _run(req: OdometryRequest, on_progress: ProgressCallback | None) -> Odometry
                 _write(outputs, frames, cfg, feed, interrupted=True)
             raise RunInterrupted(f"interrupted after {len(frames)} scans; the trajectory so "
                                  f"far is in {outputs.tum}") from None
+        if view is not None:
+            view.finish()
     if not frames:
         raise Mcl3dError(f"{req.log}: the point-cloud topic has no scans")
     summary = _write(outputs, frames, cfg, feed, interrupted=False)

@@ -32,6 +32,7 @@ from mcl3d.core.geometry import rot_to_quat
 from mcl3d.core.outputs import atomic_open, check_writable, output_folder
 from mcl3d.core.progress import Progress, ProgressCallback, report
 from mcl3d.evaluation.run_plots import SLAM_PICTURE, slam_figure, write_png
+from mcl3d.io.foxglove_results import open_results
 from mcl3d.io.logs.plausibility import check_scans
 from mcl3d.io.logs.reader import LogReader
 from mcl3d.io.trajectory import Trajectory, write_kitti, write_tum
@@ -41,6 +42,7 @@ from mcl3d.maps.build import BuildConfig
 from mcl3d.odometry.scan_feed import LidarImuFeed
 from mcl3d.registration.preprocess import voxel_downsample
 from mcl3d.slam.monte_carlo_slam import STAGES, MonteCarloSlam, SlamFrame
+from mcl3d.slam.result_view import SlamView
 from mcl3d.slam.slam_config import SlamConfig
 from mcl3d.slam.slam_summary import SlamSummary, summarize
 
@@ -84,6 +86,8 @@ class SlamRequest:
     gt_topic: str | None = None
     max_scans: int | None = None  # stop after this many scans
     tsdf: Path | None = None  # also build a TSDF map here from the SLAM trajectory
+    result_mcap: Path | None = None  # also write the Foxglove result log here
+    live_port: int | None = None  # serve the same messages live on this port (None: off)
 
 
 @dataclass(frozen=True)
@@ -120,7 +124,9 @@ def _run(req: SlamRequest, outputs: SlamOutputs, on_progress: ProgressCallback |
     cfg = req.config
     slam: MonteCarloSlam | None = None
     with LogReader(req.log, points_topic=req.points_topic, imu_topic=req.imu_topic,
-                   gt_topic=req.gt_topic) as reader:
+                   gt_topic=req.gt_topic) as reader, open_results(
+            req.result_mcap, req.live_port, req.force, "slam") as pub:
+        view = None if pub is None else SlamView(pub)
         reader.require("points")
         check_scans(reader, req.log, needs_3d=True)
         total = reader.count("points") or None
@@ -133,7 +139,9 @@ def _run(req: SlamRequest, outputs: SlamOutputs, on_progress: ProgressCallback |
                 if slam is None:
                     slam = MonteCarloSlam(cfg)
                 slam.odometry.T_lidar_imu = T_lidar_imu
-                slam.step(cloud.points, cloud.times_s, cloud.stamp_ns, imu_rows)
+                frame = slam.step(cloud.points, cloud.times_s, cloud.stamp_ns, imu_rows)
+                if view is not None:
+                    view.update(slam, frame, cloud.points, feed.gt_stamps_ns, feed.gt_poses)
                 report(on_progress, Progress("slam", len(slam.frames), total))
                 checkpoint.tick()
                 if req.max_scans is not None and len(slam.frames) >= req.max_scans:
@@ -143,6 +151,8 @@ def _run(req: SlamRequest, outputs: SlamOutputs, on_progress: ProgressCallback |
                 _write(outputs, slam, feed, interrupted=True)
             raise RunInterrupted(f"interrupted after {len(slam.frames) if slam else 0} scans; "
                                  f"the results so far are in {req.output_dir}") from None
+        if view is not None and slam is not None:
+            view.finish(voxel_downsample(slam.map_points(), slam.cfg.front_end.scan_voxel_m))
     if slam is None or not slam.frames:
         raise Mcl3dError(f"{req.log}: the point-cloud topic has no scans")
     summary = _write(outputs, slam, feed, interrupted=False)
