@@ -15,6 +15,7 @@ lidar frame.
 from __future__ import annotations
 
 import time
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -156,12 +157,13 @@ class LidarOdometry:
         # (slot, T_world_keyframe, T_keyframe_world)
         self.keyframes: list[tuple[int, np.ndarray, np.ndarray]] = []
         self.next_slot = 0
-        self.frames: list[OdometryFrame] = []
+        self.last_frame: OdometryFrame | None = None  # callers keep the frames they need
         self.v_world_imu: np.ndarray | None = None
         self.velocity_known = False  # after one IMU interval between two registered scans
         self.map_voxel_size_m: float | None = None  # fixed by the first keyframe
-        self.mid_times: list[float] = []  # mid-sweep time (s) and pose of every scan
-        self.mid_poses: list[np.ndarray] = []
+        # mid-sweep time (s) and pose of the last two scans (the constant-velocity model's)
+        self.mid_times: deque[float] = deque(maxlen=2)
+        self.mid_poses: deque[np.ndarray] = deque(maxlen=2)
         self.g_world: np.ndarray | None = None
 
     # ---- prediction ----
@@ -207,7 +209,7 @@ class LidarOdometry:
         t_start = time.perf_counter()
         cfg = self.cfg
         imu = imu if cfg.use_imu else None
-        first = not self.frames
+        first = self.last_frame is None
         self._initial_gravity(imu)
         points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         times = None
@@ -230,13 +232,13 @@ class LidarOdometry:
         num_points = self._preprocess(points, deskew_times, xi)
         frame, T_mid = self._register(stamp_ns, T_pred, num_points, first)
         frame.T_world_lidar = T_mid @ se3_exp(-t_ref * xi)
-        T_prev = self.frames[-1].T_world_lidar if self.frames else frame.T_world_lidar
+        T_prev = frame.T_world_lidar if first else self.last_frame.T_world_lidar
         frame.T_prev_curr = se3_inverse(T_prev) @ frame.T_world_lidar
         self._update_velocity(t_mid, T_mid, pre, None if imu is None or len(imu) == 0 else imu)
         self.mid_times.append(t_mid)
         self.mid_poses.append(T_mid)
         frame.wall_ms = (time.perf_counter() - t_start) * 1e3
-        self.frames.append(frame)
+        self.last_frame = frame
         return frame
 
     def _preprocess(self, points: np.ndarray, times: np.ndarray | None, xi: np.ndarray) -> int:

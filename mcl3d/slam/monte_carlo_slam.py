@@ -265,7 +265,7 @@ class MonteCarloSlam:
         p = self.particles
         self._rep = int(np.argmax(post))
         poses = p.current_poses()
-        T_rep = poses[self._rep]
+        T_rep = poses[self._rep].copy()  # a view would keep every particle's pose alive
         hyp = count_hypotheses(poses[:, :3, 3], post, cfg.pruning.hypothesis_cell_m)
         T_mean, cloud_cov = weighted_pose_mean(poses, post)
         loop_kfs = loops.get(int(origin[self._rep]), ())
