@@ -54,6 +54,7 @@ from mcl3d.maps.tsdf import surface_points
 
 NO_OVERLAP_SCANS = 10  # global init: give up when no scan matched the map by then
 NO_OVERLAP_MATCH = 0.05
+MEASURED_KINDS = ("odom", "imu")  # motion sources that measure the sweep's own motion
 PROGRESS_STAGE = "localize"
 
 
@@ -221,7 +222,7 @@ class _ScanLoop:
                 self.source.add_imu(msg.stamp_ns, msg.angular_velocity)
             else:
                 pending.append(msg)
-            while pending and self.source.covers(pending[0].stamp_ns):
+            while pending and self.source.covers(_sweep_ns(pending[0])[1]):
                 if self.process(pending.popleft()):
                     return
         while pending:
@@ -234,8 +235,7 @@ class _ScanLoop:
         motion = self.source.motion(prev, scan.stamp_ns) if prev is not None else None
         twist = None
         if motion is not None and self.cfg.deskew and scan.times_s is not None:
-            twist = geometry.se3_log(motion.T_prev_curr) / max((scan.stamp_ns - prev) * 1e-9,
-                                                               1e-6)
+            twist = self._sweep_twist(scan, prev, motion.T_prev_curr)
         try:
             result = self.loc.step(scan.points, None if motion is None else motion.T_prev_curr,
                                    scan.stamp_ns * 1e-9,
@@ -263,6 +263,17 @@ class _ScanLoop:
             self.checkpoint.tick()
         return self.cfg.max_scans is not None and len(out.results) >= self.cfg.max_scans
 
+    def _sweep_twist(self, scan, prev_ns: int, T_prev_curr: np.ndarray) -> np.ndarray:
+        """The lidar's twist during this sweep, for deskewing: the odometry's or the IMU's over
+        the sweep itself where they cover it (in a turn that speeds up, the motion since the
+        last scan is too slow and leaves the scan smeared), else that motion since the last
+        scan."""
+        start_ns, end_ns = _sweep_ns(scan)
+        if self.source.kind in MEASURED_KINDS and end_ns > start_ns and self.source.covers(end_ns):
+            T = self.source.motion(start_ns, end_ns).T_prev_curr
+            return geometry.se3_log(T) / ((end_ns - start_ns) * 1e-9)
+        return geometry.se3_log(T_prev_curr) / max((scan.stamp_ns - prev_ns) * 1e-9, 1e-6)
+
     def _check_overlap(self, result: LocalizationResult) -> None:
         """A global search that matched nothing after a while is in the wrong map."""
         self.best_match = max(self.best_match, result.best_match_ratio)
@@ -273,6 +284,15 @@ class _ScanLoop:
                 f"after {n} scans no particle's scan matches the map (best match ratio "
                 f"{self.best_match:.2f}): the map and the log are from different places or "
                 f"frames; check the map", setting="map")
+
+
+def _sweep_ns(scan) -> tuple[int, int]:
+    """(first, last) stamps (ns) of a scan's points: its stamp plus their times, if finite."""
+    times = scan.times_s
+    if times is None or len(times) == 0 or not np.isfinite(times).all():
+        return scan.stamp_ns, scan.stamp_ns
+    return (scan.stamp_ns + round(float(times.min()) * 1e9),
+            scan.stamp_ns + round(float(times.max()) * 1e9))
 
 
 def _summary(out: LocalizeResult, cfg: LocalizeConfig, info) -> LocalizeSummary:
