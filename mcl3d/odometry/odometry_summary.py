@@ -11,7 +11,7 @@ from typing import Protocol
 
 import numpy as np
 
-from mcl3d.core.errors import Mcl3dError
+from mcl3d.core.errors import Mcl3dError, TrajectoryError
 from mcl3d.evaluation.metrics import Evaluation, evaluate
 from mcl3d.io.logs.faults import LogFaults
 from mcl3d.io.trajectory import Trajectory
@@ -165,6 +165,11 @@ def evaluate_odometry(est: Trajectory, gt: Trajectory | None
         return None, None
     try:
         ev = evaluate(gt, est, alignment="origin", rpe_delta=RPE_DELTA_M, rpe_unit="m")
+    except TrajectoryError as exc:
+        if exc.setting != "rpe_delta":
+            return None, str(exc)
+        # a path shorter than RPE_DELTA_M has no pairs 1 m apart: RPE per frame, ATE kept
+        ev = evaluate(gt, est, alignment="origin", rpe_delta=1, rpe_unit="frames")
     except Mcl3dError as exc:
         return None, str(exc)
     ref, aligned = ev.association.ref_poses, ev.est_aligned_poses
@@ -186,8 +191,8 @@ def summary_rows(summary: OdometrySummary, backend: str, output_dir: Path
         rows.append(("ATE (first pose aligned)",
                      f"{ev.ate.translation_m.rmse:.3f} m RMSE, "
                      f"{ev.ate.rotation_deg.rmse:.2f} deg RMSE"))
-        rows.append(("RPE per 1 m", f"{ev.rpe.translation_m.mean:.3f} m, "
-                                    f"{ev.rpe.rotation_deg.mean:.2f} deg"))
+        rows.append((f"RPE per {ev.rpe.delta:g} {ev.rpe.unit}",
+                     f"{ev.rpe.translation_m.mean:.3f} m, {ev.rpe.rotation_deg.mean:.2f} deg"))
         if s.accuracy.drift_percent is not None:
             rows.append(("end-point drift", f"{s.accuracy.drift_percent:.2f} % of "
                                             f"{s.accuracy.gt_path_length_m:.1f} m"))

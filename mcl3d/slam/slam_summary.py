@@ -177,7 +177,7 @@ def _evaluate(trajectories: dict[str, Trajectory], gt: Trajectory | None
         if len(est) < MIN_POSES_FOR_ALIGNMENT:
             return None, None
         try:
-            ev = evaluate(gt, est, alignment="se3")
+            ev = evaluate(gt, est, alignment="se3", rpe_delta=1, rpe_unit="frames")  # ATE only
         except Mcl3dError as exc:
             return None, str(exc)
         ates[name] = AteRmse(ev.ate.translation_m.rmse, ev.ate.rotation_deg.rmse)
