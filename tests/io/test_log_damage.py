@@ -10,19 +10,17 @@ import pytest
 from mcl3d.core.errors import LogFormatError
 from mcl3d.io.logs.messages import Imu, PointCloud
 from mcl3d.io.logs.reader import LogReader
-from mcl3d.io.logs.writer import LogWriter
+from mcl3d.io.logs.writer import CHUNK_SIZE, LogWriter
 
 T0 = 1_317_000_015_000_000_000
 PERIOD = 100_000_000
 SCANS = 40
 
 
-@pytest.fixture(scope="module")
-def small_log(tmp_path_factory):
-    """40 scans of 2000 random points with IMU between them: one chunk, so any cut is mid-chunk."""
-    path = tmp_path_factory.mktemp("damage") / "log.mcap"
-    rng = np.random.default_rng(0)
-    with LogWriter(path) as w:
+def write_scans(path, seed: int, chunk_size: int = CHUNK_SIZE):
+    """SCANS scans of 2000 random points with IMU between them."""
+    rng = np.random.default_rng(seed)
+    with LogWriter(path, chunk_size=chunk_size) as w:
         for k in range(SCANS):
             stamp = T0 + k * PERIOD
             pts = (rng.normal(size=(2000, 3)) * 10).astype(np.float32)
@@ -31,6 +29,12 @@ def small_log(tmp_path_factory):
                 w.write_imu("/imu/data", Imu(stamp + j * 20_000_000, "imu", rng.normal(size=3),
                                              rng.normal(size=3)))
     return path
+
+
+@pytest.fixture(scope="module")
+def small_log(tmp_path_factory):
+    """The scans in one chunk, so any cut is mid-chunk."""
+    return write_scans(tmp_path_factory.mktemp("damage") / "log.mcap", seed=0)
 
 
 def test_a_cut_log_is_read_up_to_the_cut(small_log, tmp_path):
@@ -80,18 +84,9 @@ CHUNK_BYTES = 40_000  # about one scan per chunk, as a recorder's small chunks h
 
 @pytest.fixture(scope="module")
 def chunked_log(tmp_path_factory):
-    """The same 40 scans with IMU between them, in chunks of about one scan each."""
-    path = tmp_path_factory.mktemp("chunked") / "log.mcap"
-    rng = np.random.default_rng(1)
-    with LogWriter(path, chunk_size=CHUNK_BYTES) as w:
-        for k in range(SCANS):
-            stamp = T0 + k * PERIOD
-            pts = (rng.normal(size=(2000, 3)) * 10).astype(np.float32)
-            w.write_points("/lidar/points", PointCloud(stamp, "lidar", pts, None))
-            for j in range(5):
-                w.write_imu("/imu/data", Imu(stamp + j * 20_000_000, "imu", rng.normal(size=3),
-                                             rng.normal(size=3)))
-    return path
+    """The same kind of scans in chunks of about one scan each."""
+    return write_scans(tmp_path_factory.mktemp("chunked") / "log.mcap", seed=1,
+                       chunk_size=CHUNK_BYTES)
 
 
 def _chunk_starts(path) -> list[tuple[int, int]]:
