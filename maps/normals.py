@@ -143,15 +143,12 @@ class _Edges:
             return cls(empty, empty, np.zeros(0), np.zeros(0), np.zeros(0, bool))
         _, nb = cKDTree(points).query(points, k=k + 1, workers=-1)
         i, j = np.repeat(np.arange(n), k), nb[:, 1:].ravel()
-        ends = points[i], normals[i], points[j], normals[j]
-        direct = np.abs(np.einsum("ij,ij->i", normals[i], normals[j]))
-        clearance, two_surfaces = _crease_clearance(*ends), _off_plane(*ends) >= STACKED_MIN_M
-        cue = (direct < CREASE_DOT) | (two_surfaces & (clearance >= STACKED_SHARE))
-        trusted = ~(two_surfaces & ~cue)  # parallel, off each other's plane, side by side
-        checked = np.flatnonzero(cue)
+        c = _Comparison.of(points[i], normals[i], points[j], normals[j])
+        trusted = ~(c.two_surfaces & ~c.cue)  # parallel, off each other's plane, side by side
+        checked = np.flatnonzero(c.cue)
         trusted[checked] &= ~_through_a_surface(points, normals, nb, i[checked], j[checked])
-        weight = np.where(cue, clearance, direct) * trusted
-        return cls(i, j, relation(*ends), weight, ~cue & trusted)
+        weight = np.where(c.cue, c.clearance, np.abs(c.direct)) * trusted
+        return cls(i, j, c.relation(), weight, ~c.cue & trusted)
 
 
 def _propagate(n: int, i: np.ndarray, j: np.ndarray, cost: np.ndarray, rel: np.ndarray
@@ -230,33 +227,31 @@ def relation(p: np.ndarray, n: np.ndarray, q: np.ndarray, m: np.ndarray) -> np.n
     in a concave corner or across a slot, behind it at a convex edge or inside a thin wall
     (Koenig and Gumhold 2009 use the same cue).
     """
-    return np.where(_decision(p, n, q, m) < 0, -1.0, 1.0)
+    return _Comparison.of(p, n, q, m).relation()
 
 
-def _decision(p, n, q, m) -> np.ndarray:
-    direct = np.einsum("ij,ij->i", n, m)
-    ahead, behind = np.einsum("ij,ij->i", q - p, n), np.einsum("ij,ij->i", p - q, m)
-    cue = (np.abs(direct) < CREASE_DOT) | _stacked(p, n, q, m)
-    return np.where(cue, ahead * behind, direct)
+@dataclass
+class _Comparison:
+    """Two oriented points compared (see `relation`), per pair."""
 
+    direct: np.ndarray  # n . m
+    across: np.ndarray  # ((q - p) . n) ((p - q) . m): > 0 when both lie on the same side
+    clearance: np.ndarray  # how far each lies off the other's plane, over their distance
+    two_surfaces: np.ndarray  # they lie at least STACKED_MIN_M off each other's plane
+    cue: np.ndarray  # a crease or stacked surfaces: `across` decides, not `direct`
 
-def _stacked(p, n, q, m) -> np.ndarray:
-    """Whether q lies clearly in front of or behind p's plane (and p of q's): two surfaces."""
-    return ((_off_plane(p, n, q, m) >= STACKED_MIN_M)
-            & (_crease_clearance(p, n, q, m) >= STACKED_SHARE))
+    @classmethod
+    def of(cls, p, n, q, m) -> _Comparison:
+        ahead, behind = np.einsum("ij,ij->i", q - p, n), np.einsum("ij,ij->i", p - q, m)
+        off = np.minimum(np.abs(ahead), np.abs(behind))
+        clearance = off / np.maximum(np.linalg.norm(q - p, axis=1), 1e-12)
+        direct = np.einsum("ij,ij->i", n, m)
+        two_surfaces = off >= STACKED_MIN_M
+        cue = (np.abs(direct) < CREASE_DOT) | (two_surfaces & (clearance >= STACKED_SHARE))
+        return cls(direct, ahead * behind, clearance, two_surfaces, cue)
 
-
-def _off_plane(p, n, q, m) -> np.ndarray:
-    """How far (m) each point lies off the other's plane, the smaller of the two."""
-    return np.minimum(np.abs(np.einsum("ij,ij->i", q - p, n)),
-                      np.abs(np.einsum("ij,ij->i", p - q, m)))
-
-
-def _crease_clearance(p: np.ndarray, n: np.ndarray, q: np.ndarray, m: np.ndarray) -> np.ndarray:
-    """How clearly two points lie off each other's plane (0..1, share of their distance):
-    near a convex corner a point can sit just beside the other's plane, where the crease
-    cue is unreliable, so such edges come last in the tree."""
-    return _off_plane(p, n, q, m) / np.maximum(np.linalg.norm(q - p, axis=1), 1e-12)
+    def relation(self) -> np.ndarray:
+        return np.where(np.where(self.cue, self.across, self.direct) < 0, -1.0, 1.0)
 
 
 def _padded(matrix, size: int):
