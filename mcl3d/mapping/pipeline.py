@@ -379,7 +379,7 @@ def summary_rows(result: BuildMapResult, backend: str) -> list[tuple[str, str]]:
             *map_rows(result.geometry, result.stats),
             ("time", f"{result.seconds:.2f} s on {backend}")]
     if result.n_scans:
-        rows.append(("scans", f"{result.n_scans} ({result.scans_per_s:.1f} scans/s, "
+        rows.append(("scans", f"{result.n_scans} ({result.scans_per_s:.3g} scans/s, "
                               f"{result.n_points} points)"))
     rows.append(("written", str(result.output)))
     if result.exports.mesh_triangles is not None:

@@ -92,7 +92,10 @@ def open_source(path: Path):
         if not magic.startswith(b"#ROSBAG"):
             raise LogFormatError(f"{path}: not a ROS 1 bag (no #ROSBAG header); mcl3d reads "
                                  f"{SUPPORTED}")
-        return RosbagsSource(path, "ROS 1 bag")
+        try:
+            return RosbagsSource(path, "ROS 1 bag")
+        except LogFormatError as unreadable:
+            return _recovered_bag(path, unreadable)
     if magic != MCAP_MAGIC:
         raise LogFormatError(f"{path}: not an MCAP file (the file does not start with the MCAP "
                              f"magic bytes); mcl3d reads {SUPPORTED}")
@@ -100,6 +103,17 @@ def open_source(path: Path):
         f.seek(max(path.stat().st_size - len(MCAP_MAGIC), 0))
         complete = f.read() == MCAP_MAGIC
     return McapSource(path, complete)
+
+
+def _recovered_bag(path: Path, unreadable: LogFormatError):
+    """A ROS 1 bag rosbags cannot open (no index, damage), read record by record; when not even
+    that finds a message, rosbags' own reason stands."""
+    from mcl3d.io.logs.bag1_source import RecoveredBagSource  # it builds on this module
+
+    try:
+        return RecoveredBagSource(path)
+    except LogFormatError:
+        raise unreadable from None
 
 
 class McapSource:
@@ -352,6 +366,7 @@ class RosbagsSource:
             raise _corrupt(path, exc) from None
         r = self._reader
         self.profile = "ros1" if not r.is2 else "ros2"
+        self.skipped = LogDamage(path.stat().st_size) if not r.is2 else None
         if r.is2:
             self.format = f"{kind} ({_bag2_storage(path)})"
         self.start_ns = r.start_time if r.message_count else None
@@ -369,6 +384,7 @@ class RosbagsSource:
         conns = [c for t in topics for c in self.topics[t].handles]
         fast = {c.msgtype: livox.fast_decoder(self._reader.typestore.fielddefs, c.msgtype,
                                               self._reader.is2) for c in conns}
+        last_ns = None
         try:
             for conn, stamp, raw in self._reader.messages(connections=conns):
                 try:
@@ -378,11 +394,37 @@ class RosbagsSource:
                 except Exception as exc:
                     raise LogFormatError(f"{self.path}: a message on {conn.topic} at {stamp} ns "
                                          f"cannot be decoded ({exc}); the bag is corrupt") from None
+                last_ns = stamp
                 yield conn.topic, stamp, msg
         except Mcl3dError:
             raise
         except Exception as exc:
-            raise _corrupt(self.path, exc) from None
+            if self.skipped is None:
+                raise _corrupt(self.path, exc) from None
+            yield from self._after_damage(topics, last_ns, _corrupt(self.path, exc))
+
+    def _after_damage(self, topics: list[str], last_ns: int | None, unreadable: LogFormatError
+                      ) -> Iterator[tuple[str, int, object]]:
+        """A ROS 1 bag whose index is whole but a chunk is not: the messages after `last_ns`
+        (the last one read in time order), read record by record past the damage."""
+        recovered = _recovered_bag(self.path, unreadable)
+        for stretch in recovered.skipped.stretches.values():
+            self.skipped.add(DamagedStretch(stretch.start_byte, stretch.end_byte,
+                                            self._indexed_between(stretch)))
+        for topic, stamp, msg in recovered.messages(topics):
+            if last_ns is None or stamp > last_ns:
+                yield topic, stamp, msg
+
+    def _indexed_between(self, stretch: DamagedStretch) -> dict[str, int]:
+        """Messages per topic the bag's (whole) index places in the chunks of `stretch`."""
+        lost: dict[str, int] = {}
+        for bag in self._reader.readers:
+            for conn in bag.connections:
+                n = sum(stretch.start_byte <= entry.chunk_pos < stretch.end_byte
+                        for entry in bag.indexes.get(conn.id, ()))
+                if n:
+                    lost[conn.topic] = lost.get(conn.topic, 0) + n
+        return lost
 
     def close(self) -> None:
         self._reader.close()
