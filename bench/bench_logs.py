@@ -4,15 +4,14 @@
 Baseline, measured in the same run: iterating the same file's raw MCAP records with the
 `mcap` library (no CDR decoding, no point extraction). Memory: peak RSS growth while reading
 the whole log, which must stay far below the file size (streaming). Prints a table and
-writes JSON (default bench/results/bench_logs.json).
+writes bench/results/bench_logs.json through results_io.
 
-    python bench/bench_logs.py --scans 100 --out bench/results/bench_logs.json
+    python bench/bench_logs.py [--quick] --scans 100
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import resource
 import tempfile
@@ -20,6 +19,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from results_io import Run
 
 
 def rss_mb() -> float:
@@ -48,11 +48,15 @@ def make_scan(rng, stamp_ns: int, height: int, width: int):
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--scans", type=int, default=100)
+    parser.add_argument("--scans", type=int, default=None, help="default 100, --quick 20")
+    parser.add_argument("--quick", action="store_true", help="20 scans")
+    parser.add_argument("--backend", default="cpu", help="accepted for run_all; log I/O is host")
     parser.add_argument("--height", type=int, default=64)
     parser.add_argument("--width", type=int, default=2048)
-    parser.add_argument("--out", type=Path, default=Path("bench/results/bench_logs.json"))
+    parser.add_argument("--out", type=Path, help="JSON (default bench/results/bench_logs.json)")
     args = parser.parse_args()
+    args.scans = args.scans or (20 if args.quick else 100)
+    bench_run = Run("bench_logs", baselines=("mcap",))
 
     from mcap.reader import make_reader
 
@@ -112,13 +116,21 @@ def main() -> None:
     growth = rss_peak - rss_before
     print(f"decode cost vs raw baseline: {read_s / raw_s:.2f}x; peak RSS growth while reading: "
           f"{growth:.0f} MB for a {size_mb:.0f} MB log")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({
+    table = [{"step": name, "seconds": round(seconds, 3), "scans/s": round(rate, 1),
+              "MB/s": round(mbps, 1)} for name, seconds, rate, mbps in rows]
+    table.append({"step": "mcl3d info (summary + 3 decoded scans)", "seconds": round(info_s, 3),
+                  "scans/s": "", "MB/s": ""})
+    path = bench_run.write({
+        "tables": {f"{args.scans} scans of {args.height}×{args.width} points + "
+                   f"{10 * args.scans} IMU messages, {size_mb:.0f} MB": table},
+        "notes": [f"Reading and decoding takes {read_s / raw_s:.2f}× the raw mcap iteration "
+                  f"(the baseline); peak RSS grows {growth:.0f} MB while reading the whole "
+                  f"{size_mb:.0f} MB log (streaming)."],
         "scans": args.scans, "height": args.height, "width": args.width, "size_mb": size_mb,
         "points_read": points, "write_s": write_s, "raw_read_s": raw_s, "read_s": read_s,
-        "read_vs_raw_ratio": read_s / raw_s, "info_s": info_s, "rss_growth_mb": growth,
-        "machine": platform.platform(),
-    }, indent=2))
+        "read_vs_raw_ratio": read_s / raw_s, "info_s": info_s, "rss_growth_mb": growth},
+        args.out)
+    print(f"wrote {path}")
 
 
 if __name__ == "__main__":

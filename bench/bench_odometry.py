@@ -1,44 +1,47 @@
-"""Odometry accuracy and speed on simulated logs: mcl3d vs KISS-ICP vs small_gicp, same scans.
+"""Odometry accuracy and speed on simulated logs: mcl3d against KISS-ICP, GenZ-ICP, small_gicp
+(LiDAR only) and rko-lio (LiDAR-inertial), the same scans and IMU samples for every method.
 
-Logs are simulated in the run (`mcl3d simulate`-equivalent, fixed seeds): office and forest
-worlds, VLP-16 / OS1-64 / MID-360, ground, loop and handheld paths. Each method gets the same
-decoded scans in the same order:
-  - mcl3d odometry, with IMU and without (constant velocity), default config;
-  - KISS-ICP 1.3 (`KissICP.register_frame`, default config; its poses refer to the end of
-    the sweep, so they are stamped at the last point time);
-  - small_gicp 1.0 scan-to-model as in its `kitti_odometry.py` example (GaussianVoxelMap
-    1.0 m with LRU, 0.25 m downsampling, no deskew; stamped at the median point time, which
-    is where an undeskewed sweep registers).
-Speed on a shared machine: the methods run interleaved in one process, frame by frame (every
-method steps frame i before any steps frame i + 1, in an order that rotates with the frame
-and the repetition), each with `--threads` threads, over `--repeats` passes of every log.
-A frame's time is its median over the passes; reported are the median over frames and the
-10th-90th percentile spread, wall and process-cpu ms per frame (the whole step, preprocessing
-included; the first two frames, which compile kernels, excluded), and per frame the ratio of
-mcl3d's time to small_gicp's (median over frames). Accuracy (first pass): ATE RMSE and
-end-point drift (% of distance) after aligning the first pose, RPE per metre. kiss-icp and
-small_gicp are dev-only dependencies: `pip install -e '.[bench]'`.
+Logs are simulated in the run, one per world and seed (`--seeds`: the simulator's seeds):
+an office loop (VLP-16), a warehouse drive (OS1-64) and a forest drive (MID-360) cropped to
+the 180 deg in front of the sensor as `bench/study_slam.py`'s forest case crops it. Scans
+come through `slam_peers.scans` (mcl3d's log reader and scan/IMU pairing, the 0.5-100 m
+crop); `bench/odometry_peers.py` drives the methods and states how each deskews (every one
+with per-point times and its own motion estimate) and where its poses are stamped.
 
-    python bench/bench_odometry.py --out bench/results/bench_odometry.json
+Every method steps frame i before any steps frame i + 1, in an order that rotates with the
+frame, each with `--threads` threads. Per frame: wall and process-cpu ms of the whole step
+(preprocessing and deskew included; the first two frames of a log excluded: mcl3d compiles
+its kernels there). Reported per log and seed and as the mean over seeds: ATE RMSE after
+aligning the first pose, RPE per metre (translation, rotation), end-point drift, median
+ms/frame (wall, cpu) and the median per-frame ratio of each method's wall time to KISS-ICP's
+on the same frame. The peers are dev-only dependencies: `pip install -e '.[bench]'`.
+
+    python bench/bench_odometry.py [--seeds 1 2 3 4] [--logs office warehouse forest-180]
+        [--duration 20] [--threads 2] [--backend cpu] [--quick]
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import platform
 import resource
 import tempfile
 import time
+import traceback
 from pathlib import Path
 
 import numpy as np
 
-LOGS = [("office", "vlp16", "loop", 20.0), ("forest", "os1-64", "ground", 20.0),
-        ("office", "mid360", "handheld", 15.0), ("forest", "vlp16", "loop", 20.0),
-        ("office", "os1-64", "ground", 15.0), ("forest", "mid360", "handheld", 15.0)]
+LOGS = {
+    "office": dict(world="office", sensor="vlp16", trajectory="loop", overrides={}, fov=360.0),
+    "warehouse": dict(world="warehouse", sensor="os1-64", trajectory="ground", overrides={},
+                      fov=360.0),
+    "forest-180": dict(world="forest", sensor="mid360", trajectory="ground", fov=180.0,
+                       overrides={"world.forest_rows": 6, "world.forest_trees_per_row": 10}),
+}
 SKIP_FRAMES = 2  # kernel compilation
+BASELINE = "KISS-ICP"
+PEERS = ("kiss-icp", "genz-icp", "rko-lio", "small_gicp")
 
 
 def cpu_s() -> float:
@@ -46,224 +49,217 @@ def cpu_s() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
-def simulate(folder: Path, world, sensor, path, duration) -> Path:
+def simulate(folder: Path, name: str, seed: int, duration_s: float) -> Path:
     from mcl3d.sim.pipeline import SimulateRequest, run
 
-    out = folder / f"{world}_{sensor}_{path}.mcap"
-    run(SimulateRequest(world=world, sensor=sensor, trajectory=path, duration_s=duration,
-                        seed=1, output=out, config_path=None, export_mesh=None,
-                        export_map=None, force=True))
+    case = LOGS[name]
+    out = folder / f"{name}_{seed}.mcap"
+    run(SimulateRequest(world=case["world"], sensor=case["sensor"],
+                        trajectory=case["trajectory"], duration_s=duration_s, seed=seed,
+                        output=out, overrides=case["overrides"], force=True))
     return out
 
 
-def read_log(path: Path):
-    """Scans (stamp_s, points, times_s), IMU rows between scans, ground truth."""
-    from mcl3d.io.logs.reader import LogReader
+def read_log(log: Path, fov_deg: float):
+    """Scans (stamp_ns, points, times_s, imu rows), T_lidar_imu and the ground truth."""
+    import slam_peers
 
-    scans, imu_chunks, gt, pending = [], [], {}, []
-    with LogReader(path) as reader:
-        T_lidar_imu = reader.static_transform("lidar", "imu")
-        for kind, msg in reader.messages(("points", "imu", "gt")):
-            if kind == "imu":
-                pending.append((msg.stamp_ns * 1e-9, *msg.angular_velocity,
-                                *msg.linear_acceleration))
-            elif kind == "gt":
-                gt[msg.stamp_ns * 1e-9] = msg.T
-            else:
-                scans.append((msg.stamp_ns, msg.points.astype(np.float64),
-                              msg.times_s.astype(np.float64)))
-                imu_chunks.append(np.array(pending).reshape(-1, 7))
-                del pending[:-1]
-    return scans, imu_chunks, gt, T_lidar_imu
+    from mcl3d.io.trajectory import read_tum
+
+    scans, extrinsics = [], [np.eye(4)]
+    for stamp_ns, points, times, imu, T_lidar_imu in slam_peers.scans(log, fov_deg):
+        scans.append((stamp_ns, points, times, imu))
+        extrinsics.append(T_lidar_imu)
+    return scans, extrinsics[-1], read_tum(log.with_name(log.stem + "_gt.tum"))
 
 
-class Mcl3dRunner:
-    """mcl3d odometry; the device fields are allocated once and reused for every pass."""
-
-    def __init__(self, use_imu: bool):
-        from mcl3d.odometry.lidar_odometry import LidarOdometry, OdometryConfig
-
-        self.use_imu = use_imu
-        self.odo = LidarOdometry(OdometryConfig(use_imu=use_imu))
-
-    def reset(self, T_lidar_imu):
-        self.odo.reset(T_lidar_imu)
-
-    def step(self, scan, imu):
-        stamp_ns, pts, times = scan
-        frame = self.odo.step(pts, times, stamp_ns, imu if self.use_imu else None)
-        return stamp_ns * 1e-9, frame.T_world_lidar
-
-
-class KissRunner:
-    def __init__(self, threads: int):
-        self.threads = threads
-
-    def reset(self, T_lidar_imu):
-        from kiss_icp.config import KISSConfig
-        from kiss_icp.kiss_icp import KissICP
-
-        config = KISSConfig()
-        config.mapping.voxel_size = config.data.max_range / 100.0  # what kiss_icp_pipeline sets
-        config.registration.max_num_threads = self.threads
-        self.odo = KissICP(config)
-
-    def step(self, scan, imu):
-        stamp_ns, pts, times = scan
-        span = max(times.max(), 1e-6)
-        self.odo.register_frame(pts, times / span)
-        return stamp_ns * 1e-9 + span, self.odo.last_pose.copy()
+def run_interleaved(methods: dict, scans, T_lidar_imu) -> dict:
+    """Every method over the log, frame by frame in turn. Returns per method its trajectory
+    and (frames, 2) wall/cpu ms, or the error that stopped it."""
+    names = list(methods)
+    ms = {name: np.full((len(scans), 2), np.nan) for name in names}
+    failed: dict[str, str] = {}
+    for name, method in methods.items():
+        try:
+            method.reset(T_lidar_imu)
+        except Exception as exc:  # a peer that cannot start is reported, not fatal
+            failed[name] = f"{type(exc).__name__}: {exc}"
+    for i, (stamp_ns, points, times, imu) in enumerate(scans):
+        shift = i % len(names)
+        for name in names[shift:] + names[:shift]:
+            if name in failed:
+                continue
+            t0, c0 = time.perf_counter(), cpu_s()
+            try:
+                methods[name].step(stamp_ns, points, times, imu)
+            except Exception as exc:
+                failed[name] = f"frame {i}: {type(exc).__name__}: {exc}"
+                traceback.print_exc()
+                continue
+            ms[name][i] = (time.perf_counter() - t0) * 1e3, (cpu_s() - c0) * 1e3
+    out = {}
+    for name in names:
+        if name in failed:
+            out[name] = {"error": failed[name]}
+            continue
+        stamps, poses = methods[name].trajectory()
+        out[name] = {"stamps_ns": stamps, "poses": poses, "ms": ms[name]}
+    return out
 
 
-class SmallGicpRunner:
-    def __init__(self, threads: int):
-        self.threads = threads
-
-    def reset(self, T_lidar_imu):
-        import small_gicp
-
-        self.voxelmap = small_gicp.GaussianVoxelMap(1.0)
-        self.voxelmap.set_lru(horizon=100, clear_cycle=10)
-        self.T_world, self.T_last_current = np.eye(4), np.eye(4)
-
-    def step(self, scan, imu):
-        import small_gicp
-
-        stamp_ns, pts, times = scan
-        down, _ = small_gicp.preprocess_points(pts, 0.25, num_threads=self.threads)
-        if self.voxelmap.size() == 0:
-            self.voxelmap.insert(down)
-        else:
-            result = small_gicp.align(self.voxelmap, down, self.T_world @ self.T_last_current,
-                                      num_threads=self.threads)
-            self.T_last_current = np.linalg.inv(self.T_world) @ result.T_target_source
-            self.T_world = result.T_target_source
-            self.voxelmap.insert(down, self.T_world)
-        return stamp_ns * 1e-9 + float(np.median(times)), self.T_world.copy()
-
-
-def run_interleaved(runners: dict, scans, imu_chunks, T_lidar_imu, repeats: int):
-    """Every runner over the log `repeats` times, stepping frame by frame in turn. Returns per
-    runner the first pass's (stamps, poses) and (repeats, frames, 2) wall/cpu ms."""
-    names = list(runners)
-    ms = {name: np.zeros((repeats, len(scans), 2)) for name in names}
-    traj = {name: ([], []) for name in names}
-    for rep in range(repeats):
-        for runner in runners.values():
-            runner.reset(T_lidar_imu)
-        for i, (scan, imu) in enumerate(zip(scans, imu_chunks, strict=True)):
-            shift = (i + rep) % len(names)
-            for name in names[shift:] + names[:shift]:
-                t0, c0 = time.perf_counter(), cpu_s()
-                stamp, pose = runners[name].step(scan, imu)
-                ms[name][rep, i] = (time.perf_counter() - t0) * 1e3, (cpu_s() - c0) * 1e3
-                if rep == 0:
-                    traj[name][0].append(stamp)
-                    traj[name][1].append(pose)
-    return {name: (np.array(traj[name][0]), np.stack(traj[name][1]), ms[name])
-            for name in names}
-
-
-def timing(ms: np.ndarray) -> dict:
-    """Median over frames of each frame's median over passes, and the 10-90% spread."""
-    per_frame = np.median(ms[:, SKIP_FRAMES:], axis=0)  # (frames, wall/cpu)
-    wall, cpu = per_frame[:, 0], per_frame[:, 1]
-    return {"ms_per_frame": float(np.median(wall)),
-            "ms_p10": float(np.percentile(wall, 10)), "ms_p90": float(np.percentile(wall, 90)),
-            "cpu_ms_per_frame": float(np.median(cpu)),
-            "pass_medians_ms": [float(np.median(p[SKIP_FRAMES:, 0])) for p in ms]}
-
-
-def score(stamps, poses, gt):
+def score(stamps_ns, poses, gt) -> dict:
     from mcl3d.evaluation.metrics import evaluate
     from mcl3d.io.trajectory import Trajectory
 
-    gt_stamps = np.array(sorted(gt))
-    ref = Trajectory(gt_stamps, np.stack([gt[s] for s in gt_stamps]))
-    inside = (stamps >= gt_stamps[0]) & (stamps <= gt_stamps[-1])
-    # ground truth at the method's own stamps (KISS-ICP and small_gicp refer elsewhere)
-    ref_at = Trajectory(stamps[inside], ref.interpolate_poses(stamps[inside]))
-    est = Trajectory(stamps[inside], poses[inside])
-    ev = evaluate(ref_at, est, alignment="origin", rpe_delta=1.0, rpe_unit="m")
-    length = ref_at.path_length_m()
+    inside = (stamps_ns * 1e-9 >= gt.stamps_s[0]) & (stamps_ns * 1e-9 <= gt.stamps_s[-1])
+    stamps = stamps_ns[inside] * 1e-9
+    ref = Trajectory(stamps, gt.interpolate_poses(stamps))
+    est = Trajectory(stamps, poses[inside])
+    ev = evaluate(ref, est, alignment="origin", rpe_delta=1.0, rpe_unit="m")
+    length = ref.path_length_m()
     end = np.linalg.norm(ev.association.ref_poses[-1, :3, 3] - ev.est_aligned_poses[-1, :3, 3])
-    return {"ate_rmse_m": ev.ate.translation_m.rmse, "drift_percent": 100 * end / length,
-            "rpe_m_per_m": ev.rpe.translation_m.mean, "rpe_deg_per_m": ev.rpe.rotation_deg.mean,
-            "path_m": length}
+    return {"ate_cm": 100 * ev.ate.translation_m.rmse,
+            "rpe_cm_per_m": 100 * ev.rpe.translation_m.mean,
+            "rpe_deg_per_m": ev.rpe.rotation_deg.mean, "drift_percent": 100 * end / length,
+            "path_m": length, "poses": int(inside.sum())}
+
+
+def log_rows(log: str, seed: int, out: dict, gt, frames: int) -> list[dict]:
+    """One row per method for this log and seed (its per-frame times kept for the means)."""
+    base = out.get(BASELINE, {}).get("ms")
+    rows = []
+    for name, res in out.items():
+        row = {"log": log, "seed": seed, "method": name, "frames": frames}
+        if "error" in res:
+            rows.append({**row, "error": res["error"]})
+            continue
+        ms = res["ms"][SKIP_FRAMES:]
+        row.update(score(res["stamps_ns"], res["poses"], gt))
+        row.update(wall_ms=float(np.nanmedian(ms[:, 0])), cpu_ms=float(np.nanmedian(ms[:, 1])),
+                   wall_ms_p90=float(np.nanpercentile(ms[:, 0], 90)), frame_ms=ms)
+        if base is not None:
+            row["x_kiss"] = float(np.nanmedian(ms[:, 0] / base[SKIP_FRAMES:, 0]))
+        rows.append(row)
+    return rows
+
+
+def _r(value, digits: int):
+    return None if value is None or not np.isfinite(value) else round(float(value), digits)
+
+
+def tables(rows: list[dict], inputs: dict) -> dict:
+    """The per-seed table and the mean over seeds (times: median over every frame of every
+    seed; ratio: median over frames of the per-frame ratio to KISS-ICP)."""
+    per_seed = [{"log": r["log"], "seed": r["seed"], "method": r["method"],
+                 "ATE cm": _r(r.get("ate_cm"), 1), "RPE cm/m": _r(r.get("rpe_cm_per_m"), 2),
+                 "RPE deg/m": _r(r.get("rpe_deg_per_m"), 3),
+                 "drift %": _r(r.get("drift_percent"), 2),
+                 "wall ms/frame": _r(r.get("wall_ms"), 1), "cpu ms/frame": _r(r.get("cpu_ms"), 1),
+                 "x KISS-ICP wall": _r(r.get("x_kiss"), 2)} for r in rows]
+    means = []
+    for log in dict.fromkeys(r["log"] for r in rows):
+        for method in dict.fromkeys(r["method"] for r in rows if r["log"] == log):
+            mine = [r for r in rows if r["log"] == log and r["method"] == method]
+            ok = [r for r in mine if "error" not in r]
+            row = {"log": log, "method": method, "input": inputs.get(method, ""),
+                   "seeds": f"{len(ok)}/{len(mine)}"}
+            if ok:
+                frames = np.concatenate([r["frame_ms"] for r in ok])
+                row.update({
+                    "ATE cm": _r(np.mean([r["ate_cm"] for r in ok]), 1),
+                    "ATE cm per seed": " / ".join(f"{r['ate_cm']:.1f}" for r in ok),
+                    "RPE cm/m": _r(np.mean([r["rpe_cm_per_m"] for r in ok]), 2),
+                    "RPE deg/m": _r(np.mean([r["rpe_deg_per_m"] for r in ok]), 3),
+                    "wall ms/frame": _r(np.nanmedian(frames[:, 0]), 1),
+                    "cpu ms/frame": _r(np.nanmedian(frames[:, 1]), 1),
+                    "x KISS-ICP wall": _r(np.median([r["x_kiss"] for r in ok if "x_kiss" in r])
+                                          if any("x_kiss" in r for r in ok) else None, 2)})
+            means.append(row)
+    keys = list(dict.fromkeys(k for row in means for k in row))
+    means = [{k: row.get(k) for k in keys} for row in means]
+    return {"Odometry, mean over seeds (ATE, RPE) and median over frames (times)": means,
+            "Odometry, every seed": per_seed}
+
+
+def print_table(caption: str, rows: list[dict]) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title=caption)
+    for key in rows[0]:
+        table.add_column(key, justify="left" if key in ("log", "method", "input") else "right")
+    for row in rows:
+        table.add_row(*("" if v is None else str(v) for v in row.values()))
+    Console(width=200).print(table)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--backend", default="cpu")
-    parser.add_argument("--logs", type=int, default=len(LOGS), help="use the first N logs")
-    parser.add_argument("--repeats", type=int, default=3, help="timed passes over every log")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3, 4],
+                        help="simulator seeds: one log per world and seed")
+    parser.add_argument("--logs", nargs="+", default=list(LOGS), choices=list(LOGS))
+    parser.add_argument("--duration", type=float, default=20.0, help="seconds per log")
     parser.add_argument("--threads", type=int, default=2,
-                        help="threads of every method (Taichi's cpu backend, small_gicp, kiss-icp)")
-    parser.add_argument("--out", type=Path, default=Path("bench/results/bench_odometry.json"))
+                        help="threads of every method (Taichi's cpu backend and the peers)")
+    parser.add_argument("--quick", action="store_true",
+                        help="one seed, the office log, 12 s: a smoke run")
+    parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()
+    if args.quick:
+        args.seeds, args.logs, args.duration = args.seeds[:1], ["office"], 12.0
 
-    # same thread count everywhere; small_gicp's OpenMP threads sleep instead of spinning
-    # while they wait (GOMP's default spin burns a shared machine's cores and inflates times)
+    # same thread count everywhere; OpenMP threads sleep instead of spinning while they wait
     os.environ["TI_CPU_MAX_NUM_THREADS"] = str(args.threads)
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    from odometry_peers import INPUTS, methods
+    from results_io import Run
 
-    from importlib.metadata import version
-
-    from rich.console import Console
-    from rich.table import Table
-
-    from mcl3d.console import console
     from mcl3d.core import runtime
 
+    run = Run("bench_odometry", baselines=PEERS)
     info = runtime.init(args.backend)
-    runners = {"mcl3d (IMU)": Mcl3dRunner(True), "mcl3d (no IMU)": Mcl3dRunner(False),
-               "KISS-ICP": KissRunner(args.threads),
-               "small_gicp scan-to-model": SmallGicpRunner(args.threads)}
-    results, ratios = [], []
+    everyone = methods(args.threads)
+    rows, loads = [], []
     with tempfile.TemporaryDirectory() as tmp:
-        for world, sensor, path, duration in LOGS[:args.logs]:
-            log = simulate(Path(tmp), world, sensor, path, duration)
-            scans, imu, gt, T_lidar_imu = read_log(log)
-            name = f"{world}/{sensor}/{path}"
-            out = run_interleaved(runners, scans, imu, T_lidar_imu, args.repeats)
-            sg_ms = np.median(out["small_gicp scan-to-model"][2][:, SKIP_FRAMES:, 0], axis=0)
-            for method, (stamps, poses, ms) in out.items():
-                row = {"log": name, "method": method, "frames": len(scans),
-                       **score(stamps, poses, gt), **timing(ms)}
-                if method.startswith("mcl3d"):
-                    own = np.median(ms[:, SKIP_FRAMES:, 0], axis=0)
-                    row["ratio_vs_small_gicp"] = float(np.median(own / sg_ms))
-                    ratios.append((name, method, row["ratio_vs_small_gicp"]))
-                results.append(row)
-                console.print(f"{name:24s} {method:26s} drift {row['drift_percent']:.2f} %  "
-                              f"{row['ms_per_frame']:.1f} ms/frame")
+        for name in args.logs:
+            for seed in args.seeds:
+                log = simulate(Path(tmp), name, seed, args.duration)
+                scans, T_lidar_imu, gt = read_log(log, LOGS[name]["fov"])
+                log.unlink()
+                out = run_interleaved(everyone, scans, T_lidar_imu)
+                loads.append(round(os.getloadavg()[0], 2))
+                for row in log_rows(name, seed, out, gt, len(scans)):
+                    rows.append(row)
+                    print(f"{name:10s} seed {seed} {row['method']:20s} "
+                          + (f"ATE {row['ate_cm']:6.1f} cm  {row['wall_ms']:6.1f} ms/frame"
+                             if "error" not in row else f"FAILED {row['error']}"), flush=True)
+    figures = {"tables": tables(rows, INPUTS),
+               "notes": notes(args, info, loads, rows),
+               "settings": {"seeds": args.seeds, "logs": args.logs, "duration_s": args.duration,
+                            "threads": args.threads, "skip_frames": SKIP_FRAMES,
+                            "backend": info.backend, "device": info.device},
+               "rows": [{k: v for k, v in r.items() if k != "frame_ms"} for r in rows]}
+    for caption, table in figures["tables"].items():
+        print_table(caption, table)
+    print(f"wrote {run.write(figures, args.out)}")
 
-    table = Table(title=f"Odometry on simulated logs ({info.backend}: {info.device}, "
-                        f"{args.threads} threads, median of {args.repeats} interleaved passes)")
-    for col in ("log", "method", "path m", "ATE cm", "drift %", "RPE cm/m", "RPE deg/m",
-                "ms/frame (p10-p90)", "cpu-ms", "x small_gicp"):
-        table.add_column(col, justify="left" if col in ("log", "method") else "right")
-    for r in results:
-        ratio = f"{r['ratio_vs_small_gicp']:.2f}" if "ratio_vs_small_gicp" in r else ""
-        table.add_row(r["log"], r["method"], f"{r['path_m']:.1f}", f"{100 * r['ate_rmse_m']:.1f}",
-                      f"{r['drift_percent']:.2f}", f"{100 * r['rpe_m_per_m']:.2f}",
-                      f"{r['rpe_deg_per_m']:.3f}",
-                      f"{r['ms_per_frame']:.1f} ({r['ms_p10']:.0f}-{r['ms_p90']:.0f})",
-                      f"{r['cpu_ms_per_frame']:.1f}", ratio)
-    Console(width=170).print(table)
-    console.print("x small_gicp: median over frames of mcl3d's wall time / small_gicp's on the "
-                  "same frame (target <= 1.5)")
-    report = {"machine": {"platform": platform.platform(), "cpus": os.cpu_count(),
-                          "load_average": os.getloadavg(),
-                          "backend": info.backend, "device": info.device},
-              "versions": {p: version(p) for p in ("kiss-icp", "small_gicp", "taichi")},
-              "settings": {"repeats": args.repeats, "threads": args.threads,
-                           "skip_frames": SKIP_FRAMES,
-                           "OMP_WAIT_POLICY": os.environ["OMP_WAIT_POLICY"]},
-              "results": results}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=2))
-    console.print(f"wrote {args.out}")
+
+def notes(args, info, loads: list[float], rows: list[dict]) -> list[str]:
+    out = [f"{len(args.seeds)} seeds ({', '.join(map(str, args.seeds))}) x {len(args.logs)} "
+           f"simulated logs of {args.duration:.0f} s at 10 Hz; {info.backend} backend, "
+           f"{args.threads} threads per method, methods interleaved frame by frame; load "
+           f"average after each log {min(loads):.1f}-{max(loads):.1f}.",
+           "Same inputs: every method gets the same scans (0.5-100 m), per-point times and "
+           "deskews with its own motion (mcl3d: IMU or constant velocity; KISS-ICP, GenZ-ICP: "
+           "constant velocity; small_gicp: mcl3d's deskew kernel with its own last motion; "
+           "rko-lio: IMU); every pose is scored at the scans' header stamps.",
+           "ATE: RMSE after aligning the first pose; RPE over 1 m; times: the whole step "
+           "(deskew, preprocessing, registration, map update), first 2 frames excluded; "
+           "x KISS-ICP: median over frames of the wall-time ratio to KISS-ICP on the same frame."]
+    out += [f"{r['method']} failed on {r['log']} seed {r['seed']}: {r['error']}"
+            for r in rows if "error" in r]
+    return out
 
 
 if __name__ == "__main__":

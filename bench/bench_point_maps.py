@@ -15,6 +15,9 @@ into such a map (voxel-downsampled to about `--points`), then runs the whole com
 
     python bench/bench_point_maps.py --world warehouse --points 2600000 --duration 100
     python bench/bench_point_maps.py --world office --points 1000000 --duration 60
+    python bench/bench_point_maps.py --quick   # 100,000 points from a 5 s log, no localize
+
+Writes bench/results/bench_point_maps.json through results_io (`--json` elsewhere).
 """
 
 from __future__ import annotations
@@ -28,8 +31,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-RESULTS = Path(__file__).resolve().parent / "results"
+from results_io import Run
 
 
 def mcl3d(*args) -> dict:
@@ -112,10 +114,10 @@ def orientation_agreement(cloud: Path, gt: Path, near_m: float, k: int, cell_m: 
 
 
 def localize(work: Path, log: Path, tsdf: Path, name: str, init: str, particles: int,
-             seed: int) -> dict:
+             seed: int, backend: str) -> dict:
     out = work / f"loc_{name}_{init}"
     timing = mcl3d("localize", log, "--map", tsdf, "-o", out, "--init", init, "--particles",
-                   particles, "--seed", seed, "--backend", "cpu", "--force")
+                   particles, "--seed", seed, "--backend", backend, "--force")
     s = json.loads((out / "summary.json").read_text())
     after = s.get("ate_after_convergence") or {}
     return {"converged_after_s": s["converged_after_s"], "final_state": s["final_state"],
@@ -128,8 +130,11 @@ def localize(work: Path, log: Path, tsdf: Path, name: str, init: str, particles:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--world", default="office")
-    parser.add_argument("--points", type=int, default=1_000_000)
-    parser.add_argument("--duration", type=float, default=60.0, help="log seconds")
+    parser.add_argument("--points", type=int, default=None, help="default 1,000,000")
+    parser.add_argument("--duration", type=float, default=None, help="log seconds (60)")
+    parser.add_argument("--quick", action="store_true",
+                        help="100,000 points from a 5 s log, no localization")
+    parser.add_argument("--backend", default="cpu")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--particles", type=int, default=50_000, help="global localization")
     parser.add_argument("--near", type=float, default=10.0, help="m from the trajectory")
@@ -137,6 +142,10 @@ def main() -> None:
     parser.add_argument("--work", type=Path, default=Path("/tmp/mcl3d_point_maps"))
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args()
+    args.points = args.points or (100_000 if args.quick else 1_000_000)
+    args.duration = args.duration or (5.0 if args.quick else 60.0)
+    args.no_localize = args.no_localize or args.quick
+    bench_run = Run("bench_point_maps", baselines=("open3d", "scipy"))
 
     from mcl3d.maps.build import BuildConfig
 
@@ -148,7 +157,7 @@ def main() -> None:
     for name, tsdf in maps.items():
         extra = ("--trajectory", gt) if name == "with_poses" else ()
         result["builds"][name] = mcl3d("build-map", cloud, "-o", tsdf, *extra, "--backend",
-                                       "cpu", "--force")
+                                       args.backend, "--force")
         print(name, result["builds"][name], flush=True)
     cfg = BuildConfig()
     result["orientation"] = orientation_agreement(cloud, gt, args.near, cfg.normal_neighbors,
@@ -157,13 +166,38 @@ def main() -> None:
     if not args.no_localize:
         for name, tsdf in maps.items():
             for init, particles in (("global", args.particles), ("gt", 5000)):
-                row = localize(work, log, tsdf, name, init, particles, args.seed)
+                row = localize(work, log, tsdf, name, init, particles, args.seed,
+                               args.backend)
                 result["localize"][f"{name}/{init}"] = row
                 print(name, init, row, flush=True)
-    path = args.json or RESULTS / f"point_maps_{args.world}_{args.points}.json"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(result, indent=2) + "\n")
+    path = bench_run.write({**tables(result, args), **result}, args.json)
     print(f"wrote {path}")
+
+
+def tables(result: dict, args) -> dict:
+    """The rendered part of the JSON: builds, orientation, localization."""
+    builds = [{"map": name.replace("_", " "), "build-map s": round(b["wall_s"], 1),
+               "peak RSS GiB": round(b["peak_rss_gib"], 2)}
+              for name, b in result["builds"].items()]
+    o = result["orientation"]
+    orient = [{"points": f"{o['points']:,}", f"within {args.near:g} m of the trajectory":
+               f"{o['points_near']:,}", "agree there": f"{100 * o['agreement_near']:.1f} %",
+               "agree, all points": f"{100 * o['agreement_all']:.1f} %",
+               "orienting s": round(o["orient_s"], 1)}]
+    out = {f"Whole build-map commands, {args.world}, {o['points']:,} points": builds,
+           "Normals oriented from the map alone against oriented towards the trajectory":
+               orient}
+    if result["localize"]:
+        out["Whole localize commands in each map"] = [
+            {"map / init": key.replace("_", " "),
+             "converged after s": r["converged_after_s"], "final state": r["final_state"],
+             "ATE after convergence cm": None if r["ate_after_convergence_m"] is None
+             else round(100 * r["ate_after_convergence_m"], 2), "wall s": round(r["wall_s"], 1)}
+            for key, r in result["localize"].items()]
+    notes = [f"{args.world} log of {args.duration:g} s, seed {args.seed}; the point map is its "
+             "scans placed by the true poses and voxel-downsampled; global localization with "
+             f"{args.particles:,} particles, tracking with 5,000; backend {args.backend}."]
+    return {"tables": out, "notes": notes}
 
 
 if __name__ == "__main__":

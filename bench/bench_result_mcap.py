@@ -9,14 +9,12 @@
 2. End to end: `localize` on the tiny ray-cast room log of the tests with and without
    `--result-mcap` (same seed), ms per scan, after a warm-up run that compiles the kernels.
 
-    python bench/bench_result_mcap.py --out bench/results/bench_result_mcap.json
+    python bench/bench_result_mcap.py [--quick]   # bench/results/bench_result_mcap.json
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import platform
 import statistics
 import sys
 import tempfile
@@ -24,6 +22,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from results_io import Run
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -92,14 +91,14 @@ def publisher_cost(args, folder: Path) -> dict:
             "bytes_per_scan": path.stat().st_size / args.scans}
 
 
-def localize_cost(folder: Path) -> dict:
+def localize_cost(folder: Path, backend: str) -> dict:
     sys.path.insert(0, str(ROOT / "tests"))
     from support import localize_world
 
     from mcl3d.core import runtime
     from mcl3d.localization.pipeline import LocalizeConfig, LocalizeRequest, run
 
-    runtime.init("cpu")
+    runtime.init(backend)
     n = 12
     localize_world.write_log(folder / "room.mcap", n)
     localize_world.save_room_map(folder / "room.tsdf", 0.1)
@@ -123,16 +122,19 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scan-points", type=int, default=65_536)
     parser.add_argument("--particles", type=int, default=200_000)
-    parser.add_argument("--scans", type=int, default=50)
+    parser.add_argument("--scans", type=int, default=None, help="default 50, --quick 10")
+    parser.add_argument("--quick", action="store_true", help="10 scans")
+    parser.add_argument("--backend", default="cpu", help="of the end-to-end localize run")
     parser.add_argument("--skip-localize", action="store_true")
-    parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" /
-                        "bench_result_mcap.json")
+    parser.add_argument("--out", type=Path, help="JSON (default bench/results/"
+                                                 "bench_result_mcap.json)")
     args = parser.parse_args()
+    args.scans = args.scans or (10 if args.quick else 50)
+    bench_run = Run("bench_result_mcap", baselines=("mcap", "foxglove-sdk"))
     with tempfile.TemporaryDirectory() as tmp:
-        result = {"machine": platform.processor() or platform.machine(),
-                  "publisher": publisher_cost(args, Path(tmp))}
+        result = {"publisher": publisher_cost(args, Path(tmp))}
         if not args.skip_localize:
-            result["localize_room"] = localize_cost(Path(tmp))
+            result["localize_room"] = localize_cost(Path(tmp), args.backend)
     print(f"{'':24}{'ms/scan':>10}{'cpu ms':>10}{'baseline':>10}{'ratio':>8}{'kB/scan':>10}")
     p = result["publisher"]
     print(f"{'foxglove publisher':24}{p['ms_per_scan_wall']:10.2f}{p['ms_per_scan_cpu']:10.2f}"
@@ -142,8 +144,32 @@ def main() -> None:
         r = result["localize_room"]
         print(f"{'localize room (with)':24}{r['ms_per_scan_with']:10.2f}{'':10}"
               f"{r['ms_per_scan_without']:10.2f}{r['ratio']:8.2f}")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2))
+    path = bench_run.write({"tables": tables(result, args), "notes": [
+        "Publisher: median over the scans of the wall and process-cpu time per scan; the "
+        "baseline is the ROS-typed result log written in the same run (a PoseStamped, 2,000 "
+        "particle positions and the scan in the map frame as PointCloud2).",
+        "End to end: `localize` on the tests' ray-cast room log (12 scans, 3,000 particles, "
+        "tracking), best of two runs each, after a warm-up run."], **result}, args.out)
+    print(f"wrote {path}")
+
+
+def tables(result: dict, args) -> dict:
+    p = result["publisher"]
+    rows = {f"Foxglove result MCAP per scan ({args.scan_points:,} scan points, 5,000 of "
+            f"{args.particles:,} particles, {args.scans} scans)": [
+                {"writer": "Foxglove result MCAP", "ms per scan": round(p["ms_per_scan_wall"], 2),
+                 "cpu ms": round(p["ms_per_scan_cpu"], 2),
+                 "kB per scan": round(p["bytes_per_scan"] / 1e3)},
+                {"writer": "ROS-typed result log (baseline)",
+                 "ms per scan": round(p["baseline_ros_ms"], 2), "cpu ms": "",
+                 "kB per scan": round(p["baseline_ros_bytes_per_scan"] / 1e3)}]}
+    if "localize_room" in result:
+        r = result["localize_room"]
+        rows["localize end to end, ms per scan"] = [
+            {"without --result-mcap": round(r["ms_per_scan_without"], 1),
+             "with --result-mcap": round(r["ms_per_scan_with"], 1),
+             "ratio": round(r["ratio"], 2)}]
+    return rows
 
 
 if __name__ == "__main__":

@@ -16,7 +16,9 @@ import time
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
-RESULTS = Path(__file__).resolve().parent / "results"
+# MCL3D_BENCH_RESULTS moves every bench's JSON elsewhere (bench/device_suite.sh: a GPU run's
+# JSON must not replace the cpu figures)
+RESULTS = Path(os.environ.get("MCL3D_BENCH_RESULTS") or Path(__file__).resolve().parent / "results")
 CORE_PACKAGES = ("mcl3d", "taichi", "numpy", "open3d")
 
 
