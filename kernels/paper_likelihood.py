@@ -20,6 +20,7 @@ ll_mean[i] = log(total / M), the log of the mean per-point term.
 
 import taichi as ti
 
+from mcl3d.kernels.likelihood import slot_of
 from mcl3d.kernels.se3 import quat_to_mat
 from mcl3d.kernels.tsdf_lookup import BLOCK
 
@@ -43,26 +44,21 @@ def build_paper_values(m: ti.template(), values: ti.template(), n_blocks: ti.i32
 
 
 @ti.func
-def _value(values: ti.template(), slot: ti.template(), g, dims, unknown: ti.i32) -> ti.f32:
+def _value(m: ti.template(), values: ti.template(), slot: ti.template(), g) -> ti.f32:
     """The precomputed value of voxel g (the constant block outside the grid)."""
-    c = g >> 3
-    cu = ti.cast(c, ti.u32)
-    inside = (cu[0] < dims[0]) & (cu[1] < dims[1]) & (cu[2] < dims[2])
-    cc = ti.select(inside, c, 0)
-    s = ti.select(inside, slot[cc[0], cc[1], cc[2]], unknown)
+    s = slot_of(m, slot, g >> 3)
     return values[s, g[0] & (BLOCK - 1), g[1] & (BLOCK - 1), g[2] & (BLOCK - 1)]
 
 
 @ti.kernel
 def paper_scan_log_likelihood(m: ti.template(), values: ti.template(), slot: ti.template(),
                               order: ti.template(), pos: ti.template(), quat: ti.template(),
-                              n: ti.i32, pts: ti.template(), n_pts: ti.i32, floor: ti.f32,
+                              n: ti.i32,
+                              pts: ti.template(), n_pts: ti.i32, floor: ti.f32,
                               match_value: ti.f32, log_w: ti.template(),
                               match: ti.template(), ll_mean: ti.template()):
     o = vec3(m.origin_m[0], m.origin_m[1], m.origin_m[2])
     inv_vox = 1.0 / m.voxel_size_m
-    dims = ti.math.uvec3(m.coarse_dims[0], m.coarse_dims[1], m.coarse_dims[2])
-    unknown = m.capacity + 1
     ti.loop_config(block_dim=64)
     for k in range(n):
         i = order[k]
@@ -79,7 +75,7 @@ def paper_scan_log_likelihood(m: ti.template(), values: ti.template(), slot: ti.
             for cx, cy, cz in ti.static(ti.ndrange(2, 2, 2)):
                 w = ((f[0] if cx else 1.0 - f[0]) * (f[1] if cy else 1.0 - f[1])
                      * (f[2] if cz else 1.0 - f[2]))
-                s += w * _value(values, slot, g0 + ti.math.ivec3(cx, cy, cz), dims, unknown)
+                s += w * _value(m, values, slot, g0 + ti.math.ivec3(cx, cy, cz))
             total += s + floor
             hits += ti.cast(s >= match_value, ti.i32)
         inv_m = 1.0 / ti.max(n_pts, 1)

@@ -1,6 +1,12 @@
-"""The TSDF's block pool: allocating blocks (one thread wins each), resetting and
-initializing pool slots, and copying blocks between the host and the device. The map
-container is described in `tsdf_lookup`."""
+"""The TSDF's coarse index and block pool: claiming tiles and allocating blocks (one thread
+wins each), resetting and initializing pool slots, and copying blocks and coarse cells
+between the host and the device. The map container is described in `tsdf_lookup`.
+
+A launch that needs a tile that does not exist yet claims it; a thread that loses the claim
+to another thread of the same launch cannot use the tile before the next launch, so it
+counts a miss in `tile_misses` and the host relaunches the (idempotent) allocation until no
+thread misses (mcl3d.maps.tsdf.TsdfMap.relaunch_until_placed).
+"""
 
 import taichi as ti
 
@@ -9,37 +15,88 @@ from mcl3d.kernels.tsdf_lookup import (
     FREE,
     FREE_WEIGHT,
     OVERFLOW,
+    TILE,
+    TILE_OVERFLOW,
+    TILE_SHIFT,
     UNKNOWN,
+    coarse_cell,
     fixed_value,
+    in_bounds,
     ivec3,
+    set_tile_cell,
+    tile_cell,
+    tile_id,
 )
+
+
+@ti.func
+def claim_tile(m: ti.template(), bc: ivec3) -> ti.i32:
+    """The tile of coarse cell bc (inside the bounds), claimed when it has none: its id, or -1
+    when another thread of this launch claimed it (a miss, counted) or the pool is full.
+
+    Fresh tiles need no init: their cells hold zeros, UNKNOWN (`tsdf_lookup`). Past the
+    tile capacity `tile_count` still counts, so the host learns how many were needed.
+    """
+    t = tile_id(m, bc)
+    tc = bc >> TILE_SHIFT
+    if t == -1:  # no tile yet (-2: the tile pool overflowed)
+        if ti.atomic_or(m.tile_flag[tc[0], tc[1], tc[2]], 1) == 0:
+            nid = ti.atomic_add(m.tile_count[None], 1)
+            if nid < m.tile_capacity:
+                m.tile_coord[nid] = tc
+                m.tile_of[tc[0], tc[1], tc[2]] = nid + 1
+                t = nid
+            else:
+                m.tile_of[tc[0], tc[1], tc[2]] = TILE_OVERFLOW
+        else:
+            ti.atomic_add(m.tile_misses[None], 1)
+    return t
 
 
 @ti.func
 def allocate_block(m: ti.template(), bx: ti.i32, by: ti.i32, bz: ti.i32):
     """Give block (bx, by, bz) a pool slot; exactly one thread wins (atomic flag + counter).
 
-    Readers must look at `coarse` in a later launch. Past capacity the counter still counts,
-    so the caller learns how many blocks were needed. A block that was FREE keeps that
-    evidence in `free_hits` here, so slots that are still zero need no init pass.
+    Readers must look at the coarse cell in a later launch. Past capacity the counter still
+    counts, so the caller learns how many blocks were needed. A block that was FREE keeps
+    that evidence in `free_hits` here, so slots that are still zero need no init pass. A
+    cell whose tile this launch could not use yet (a miss) is left for the next launch.
     """
-    if (0 <= bx < m.coarse_dims[0] and 0 <= by < m.coarse_dims[1]
-            and 0 <= bz < m.coarse_dims[2]):
-        c = m.coarse[bx, by, bz]
-        # nested ifs and no `in`: Taichi does not short-circuit `and` nor support `in`
-        if c == UNKNOWN or c == FREE:  # noqa: SIM102, SIM109
-            if ti.atomic_or(m.alloc_flag[bx, by, bz], 1) == 0:
-                nid = ti.atomic_add(m.block_count[None], 1)
-                if nid < m.capacity:
-                    m.block_coord[nid] = ivec3(bx, by, bz)
-                    m.block_free[nid] = 1 if c == FREE else 0
-                    if ti.static(m.writable):  # noqa: SIM102 (compile-time if)
-                        if c == FREE:
-                            for v in range(BLOCK * BLOCK * BLOCK):
-                                m.free_hits[nid, v >> 6, (v >> 3) & 7, v & 7] = FREE_WEIGHT
-                    m.coarse[bx, by, bz] = nid
-                else:
-                    m.coarse[bx, by, bz] = OVERFLOW
+    bc = ivec3(bx, by, bz)
+    if in_bounds(m, bc):
+        t = claim_tile(m, bc)
+        if t >= 0:
+            c = tile_cell(m, t, bc)
+            # nested ifs and no `in`: Taichi does not short-circuit `and` nor support `in`
+            if c == UNKNOWN or c == FREE:  # noqa: SIM102, SIM109
+                if ti.atomic_or(m.cell_flag[t, bx & (TILE - 1), by & (TILE - 1),
+                                            bz & (TILE - 1)], 1) == 0:
+                    nid = ti.atomic_add(m.block_count[None], 1)
+                    if nid < m.capacity:
+                        m.block_coord[nid] = bc
+                        m.block_free[nid] = 1 if c == FREE else 0
+                        if ti.static(m.writable):  # noqa: SIM102 (compile-time if)
+                            if c == FREE:
+                                for v in range(BLOCK * BLOCK * BLOCK):
+                                    m.free_hits[nid, v >> 6, (v >> 3) & 7, v & 7] = FREE_WEIGHT
+                        set_tile_cell(m, t, bc, nid)
+                    else:
+                        set_tile_cell(m, t, bc, OVERFLOW)
+
+
+@ti.func
+def mark_free(m: ti.template(), bc: ivec3, claim: ti.template()):
+    """Coarse cell bc (inside the bounds) UNKNOWN -> FREE. With `claim` a missing tile is
+    claimed (a miss when another thread of the launch holds it), else such a cell stays
+    unknown (the carving pass: its tiles were claimed by the allocation pass)."""
+    t = -1
+    if ti.static(claim):  # noqa: SIM108 (compile-time if)
+        t = claim_tile(m, bc)
+    else:
+        t = tile_id(m, bc)
+    if t >= 0:  # noqa: SIM102
+        if tile_cell(m, t, bc) == UNKNOWN:
+            set_tile_cell(m, t, bc, FREE)
 
 
 @ti.func
@@ -51,22 +108,51 @@ def clear_sums(m: ti.template(), b: ti.i32, i: ti.i32, j: ti.i32, h: ti.i32):
 
 
 @ti.kernel
-def fill_coarse(m: ti.template(), start: ti.i32, count: ti.i32, value: ti.i32):
-    """coarse = value and alloc_flag = 0 over flat cells [start, start + count)."""
-    ny = m.coarse_dims[1]
-    nz = m.coarse_dims[2]
+def zero_top(m: ti.template(), start: ti.i32, count: ti.i32):
+    """No tile (and no claim) over flat top-grid cells [start, start + count)."""
+    ny = m.top_dims[1]
+    nz = m.top_dims[2]
     for k in range(count):
         i = start + k
         x = i // (ny * nz)
         y = (i // nz) % ny
         z = i % nz
-        m.coarse[x, y, z] = value
-        m.alloc_flag[x, y, z] = 0
+        m.tile_of[x, y, z] = 0
+        m.tile_flag[x, y, z] = 0
+
+
+@ti.kernel
+def zero_tiles(m: ti.template(), start: ti.i32, count: ti.i32):
+    """Tiles [start, start + count) back to zeros: every cell UNKNOWN and unclaimed."""
+    for k, i, j, h in ti.ndrange(count, TILE, TILE, TILE):
+        m.cells[start + k, i, j, h] = 0
+        m.cell_flag[start + k, i, j, h] = 0
+
+
+@ti.kernel
+def read_tiles(m: ti.template(), start: ti.i32, count: ti.i32,
+               coords: ti.types.ndarray(dtype=ivec3, ndim=1),
+               cells: ti.types.ndarray(dtype=ti.i32, ndim=4)):
+    """Tiles [start, start + count): their top-grid coordinates and cell values."""
+    for k, i, j, h in ti.ndrange(count, TILE, TILE, TILE):
+        if i == 0 and j == 0 and h == 0:
+            coords[k] = m.tile_coord[start + k]
+        cells[k, i, j, h] = m.cells[start + k, i, j, h] - 1
 
 
 @ti.kernel
 def reset_count(m: ti.template()):
     m.block_count[None] = 0
+    m.tile_count[None] = 0
+    m.tile_misses[None] = 0
+
+
+@ti.kernel
+def take_misses(m: ti.template()) -> ti.i32:
+    """The misses of the launches since the last call (and reset them)."""
+    n = m.tile_misses[None]
+    m.tile_misses[None] = 0
+    return n
 
 
 @ti.kernel
@@ -111,9 +197,8 @@ def mark_free_coords(m: ti.template(), coords: ti.types.ndarray(dtype=ivec3, ndi
     """Blocks known to be free of surfaces: UNKNOWN -> FREE (allocated blocks stay)."""
     for i in range(n):
         c = coords[i]
-        if (0 <= c[0] < m.coarse_dims[0] and 0 <= c[1] < m.coarse_dims[1]
-                and 0 <= c[2] < m.coarse_dims[2]) and m.coarse[c[0], c[1], c[2]] == UNKNOWN:
-            m.coarse[c[0], c[1], c[2]] = FREE
+        if in_bounds(m, c):
+            mark_free(m, c, True)
 
 
 @ti.kernel
@@ -122,8 +207,7 @@ def write_blocks(m: ti.template(), coords: ti.types.ndarray(dtype=ivec3, ndim=1)
                  weight: ti.types.ndarray(dtype=ti.f32, ndim=4), n: ti.i32):
     """Copy values of already allocated blocks, addressed by block coordinates."""
     for k, i, j, h in ti.ndrange(n, BLOCK, BLOCK, BLOCK):
-        c = coords[k]
-        b = m.coarse[c[0], c[1], c[2]]
+        b = coarse_cell(m, coords[k])
         if b >= 0:
             m.sdf[b, i, j, h] = ti.cast(sdf[k, i, j, h], m.sdf.dtype)
             m.weight[b, i, j, h] = ti.cast(weight[k, i, j, h], m.weight.dtype)

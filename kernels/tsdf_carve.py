@@ -3,7 +3,19 @@ allocated blocks count the rays that crossed them (see `tsdf_lookup` for the map
 
 import taichi as ti
 
-from mcl3d.kernels.tsdf_lookup import BIG, BLOCK, FREE, UNKNOWN, in_grid, ivec3, vec3, world_to_grid
+from mcl3d.kernels.tsdf_blocks import claim_tile, mark_free
+from mcl3d.kernels.tsdf_lookup import (
+    BIG,
+    BLOCK,
+    TILE,
+    UNKNOWN,
+    coarse_cell,
+    in_bounds,
+    in_grid,
+    ivec3,
+    vec3,
+    world_to_grid,
+)
 
 
 @ti.func
@@ -25,7 +37,8 @@ def lowest_bit(i: ti.i32) -> ti.i32:
 def carve_ray(m: ti.template(), a: vec3, u: vec3, length: ti.f32, stop_after: ti.f32):
     """Free space along a + s u, s in [0, length): unallocated blocks become FREE as a
     whole, voxels of allocated blocks count a hit each, sampled a voxel apart; past
-    stop_after the walk ends in the first unallocated block it meets.
+    stop_after the walk ends in the first unallocated block it meets. Blocks become FREE
+    only in tiles that exist: `claim_tiles_along` claimed them in the allocation pass.
 
     scan_fuse walks each ray backwards, from where it comes within truncation of its
     surface toward the sensor, so a ray that need not carve near the sensor still counts
@@ -57,7 +70,7 @@ def carve_ray(m: ti.template(), a: vec3, u: vec3, length: ti.f32, stop_after: ti
             s += BLOCK * vox
         else:
             bc = g >> 3
-            b = m.coarse[bc[0], bc[1], bc[2]]
+            b = coarse_cell(m, bc)
             if b >= 0:
                 if (g != last).any():
                     accumulate_free(m, b, g)
@@ -73,7 +86,7 @@ def carve_ray(m: ti.template(), a: vec3, u: vec3, length: ti.f32, stop_after: ti
                         t[k] = (face[k] - g0[k]) * inv[k]
                 while True:
                     if b == UNKNOWN:
-                        m.coarse[bc[0], bc[1], bc[2]] = FREE
+                        mark_free(m, bc, False)
                     axis = 0
                     s_exit = t[0]
                     if t[1] < s_exit:
@@ -89,10 +102,9 @@ def carve_ray(m: ti.template(), a: vec3, u: vec3, length: ti.f32, stop_after: ti
                         if axis == k:
                             bc[k] += step[k]
                             t[k] += BLOCK * ti.abs(inv[k])
-                    if not (0 <= bc[0] < m.coarse_dims[0] and 0 <= bc[1] < m.coarse_dims[1]
-                            and 0 <= bc[2] < m.coarse_dims[2]):
+                    if not in_bounds(m, bc):
                         break
-                    b = m.coarse[bc[0], bc[1], bc[2]]
+                    b = coarse_cell(m, bc)
                     if b >= 0:
                         break
 
@@ -116,3 +128,53 @@ def carve_in_front(m: ti.template(), i: ti.i32, o: vec3, u: vec3, r: ti.f32, c: 
     s_free = r - m.truncation_m / c
     s_voxels = s_dense / ti.cast(lowest_bit(i), ti.f32)
     carve_ray(m, o + s_free * u, -u, s_free - s_voxels, s_free - 2.0 * s_voxels)
+
+
+@ti.func
+def claim_tiles_along(m: ti.template(), a: vec3, u: vec3, length: ti.f32):
+    """Claim the tiles of the coarse index that the segment a + s u, s in [0, length]
+    crosses (a 3D DDA over tiles), so that carving, a later launch, finds them."""
+    tile_vox = ti.static(TILE * BLOCK)
+    g0 = world_to_grid(m, a) * (1.0 / tile_vox)  # the ray in tile units: g0 + s * ut
+    ut = u * (1.0 / (m.voxel_size_m * tile_vox))
+    tc = ti.cast(ti.floor(g0), ti.i32)
+    t = vec3(BIG)  # ray parameter of the next tile face along each axis
+    dt = vec3(BIG)
+    step = ivec3(0)
+    for k in ti.static(range(3)):
+        if ut[k] > 1e-12:
+            step[k] = 1
+            dt[k] = 1.0 / ut[k]
+            t[k] = (ti.cast(tc[k] + 1, ti.f32) - g0[k]) * dt[k]
+        elif ut[k] < -1e-12:
+            step[k] = -1
+            dt[k] = -1.0 / ut[k]
+            t[k] = (g0[k] - ti.cast(tc[k], ti.f32)) * dt[k]
+    s = 0.0
+    while s <= length:
+        bc = tc * TILE
+        if in_bounds(m, bc):
+            claim_tile(m, bc)
+        axis = 0
+        if t[1] < t[axis]:
+            axis = 1
+        if t[2] < t[axis]:
+            axis = 2
+        s = t[axis]
+        for k in ti.static(range(3)):
+            if axis == k:
+                tc[k] += step[k]
+                t[k] += dt[k]
+
+
+@ti.func
+def claim_carve_tiles(m: ti.template(), i: ti.i32, o: vec3, u: vec3, r: ti.f32, c: ti.f32,
+                      s_dense: ti.f32):
+    """The tiles `carve_in_front` may mark FREE blocks in (the same ray, up to where its
+    walk of unallocated blocks stops), claimed in the allocation pass; a block's margin
+    past the stop covers the walk's last step."""
+    s_free = r - m.truncation_m / c
+    s_voxels = s_dense / ti.cast(lowest_bit(i), ti.f32)
+    stop = ti.min(s_free - s_voxels, s_free - 2.0 * s_voxels)
+    if stop >= 0.0:
+        claim_tiles_along(m, o + s_free * u, -u, stop + BLOCK * m.voxel_size_m)

@@ -21,7 +21,7 @@ from mcl3d.kernels.tsdf_band import (
     tangent_basis,
 )
 from mcl3d.kernels.tsdf_blocks import allocate_block, clear_sums
-from mcl3d.kernels.tsdf_carve import carve_in_front, dense_range
+from mcl3d.kernels.tsdf_carve import carve_in_front, claim_carve_tiles, dense_range
 from mcl3d.kernels.tsdf_lookup import (
     BLOCK,
     UNKNOWN,
@@ -91,7 +91,7 @@ def scan_allocate(m: ti.template(), pts: ti.types.ndarray(dtype=vec3, ndim=1),
                   max_range: ti.f32, spacing_rad: ti.f32, behind_m: ti.f32,
                   use_normals: ti.template(), ray_p: ti.types.ndarray(dtype=vec4, ndim=1),
                   ray_n: ti.types.ndarray(dtype=vec4, ndim=1), run_length: ti.i32,
-                  threads: ti.i32):
+                  threads: ti.i32, carve: ti.template()):
     """Pass 1 of a scan: allocate the blocks that hold samples of each point's band patch
     (exactly those scan_fuse visits), testing as few samples as that takes.
 
@@ -100,8 +100,11 @@ def scan_allocate(m: ti.template(), pts: ti.types.ndarray(dtype=vec3, ndim=1),
     sensor, |cos incidence|), the latter 0 for a point that is skipped (out of range).
 
     Runs of run_length consecutive points are spread over the cpu threads (kernels.spread).
+    With `carve`, also claims the coarse-index tiles that scan_fuse's carving will mark
+    FREE blocks in. Idempotent: the host relaunches it while tiles were missed.
     """
     delta = scan_motion(q0, q1)
+    s_dense = dense_range(m, spacing_rad)
     n_runs = (n + run_length - 1) // run_length
     for index in range(spread_length(n_runs, threads)):
         run = spread_item(index, n_runs, threads)
@@ -109,11 +112,13 @@ def scan_allocate(m: ti.template(), pts: ti.types.ndarray(dtype=vec3, ndim=1),
             for i in range(run * run_length, ti.min(n, (run + 1) * run_length)):
                 ray_n[i] = vec4(0.0)
                 if point_ok(pts[i], min_range, max_range):
-                    p, _o, _u, r, nr, c = ray_setup(pts[i], nrm[i], alpha[i], q0, t0, delta,
-                                                    t1, use_normals)
+                    p, o, u, r, nr, c = ray_setup(pts[i], nrm[i], alpha[i], q0, t0, delta, t1,
+                                                  use_normals)
                     ray_p[i] = vec4(p, r)
                     ray_n[i] = vec4(nr, c)
                     allocate_patch(m, p, nr, footprint_steps(m, r, spacing_rad), behind_m)
+                    if ti.static(carve):
+                        claim_carve_tiles(m, i, o, u, r, c, s_dense)
 
 
 @ti.kernel

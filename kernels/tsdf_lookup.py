@@ -4,15 +4,20 @@ distance, weight and state of a voxel or a point (nearest, trilinear, gradient).
 Every TSDF kernel takes the map `m` as `ti.template()` (mcl3d.maps.tsdf.TsdfMap, compiled
 once per map: its geometry is baked in as constants), a data-oriented container holding
 
-- fields `coarse` (i32 [cx, cy, cz]: block id >= 0, or UNKNOWN / OVERFLOW / FREE),
-  `sdf`, `weight` (pool [capacity, 8, 8, 8], f32 or f16), `alloc_flag` (i32 like
-  `coarse`), `block_count` (i32 scalar), `block_coord` (ivec3 [capacity]), `block_free`
-  (i32 [capacity]) and, when `writable`, `free_hits` (f32 pool: rays that crossed a voxel
-  in front of their band, whole numbers: exact in any order) and, when `exact_sums` (a
-  writable map but on Vulkan), `sum_w`, `sum_wd` (i64 pools: fixed-point sums, see
-  below);
+- the coarse index, sparse (see `coarse_cell`): fields `tile_of` (i32 [tx, ty, tz], the top
+  grid: tile id + 1, 0 = no tile, -1 = the tile pool overflowed), `tile_flag` (i32 like
+  `tile_of`, claimed), `tile_count` (i32 scalar), `tile_coord` (ivec3 [tile_capacity]),
+  `cells` (i32 [tile_capacity, 8, 8, 8]: the coarse cell's value + 1, values: block id >= 0,
+  or UNKNOWN / OVERFLOW / FREE; stored + 1 so that zeros, never written memory, are
+  UNKNOWN), `cell_flag` (i32 like `cells`), `tile_misses` (i32 scalar);
+- the block pool: `sdf`, `weight` (pool [capacity, 8, 8, 8], f32 or f16), `block_count`
+  (i32 scalar), `block_coord` (ivec3 [capacity]), `block_free` (i32 [capacity]) and, when
+  `writable`, `free_hits` (f32 pool: rays that crossed a voxel in front of their band, whole
+  numbers: exact in any order) and, when `exact_sums` (a writable map but on Vulkan),
+  `sum_w`, `sum_wd` (i64 pools: fixed-point sums, see below);
 - constants `voxel_size_m`, `truncation_m`, `origin_m` (3 floats: the corner of voxel
-  (0, 0, 0)), `coarse_dims` (3 ints), `capacity`, `writable` (bool).
+  (0, 0, 0)), `coarse_dims` (3 ints: the bounds in blocks), `top_dims`, `capacity`,
+  `tile_capacity`, `writable` (bool).
 
 Voxel (i, j, k) covers origin + [i, i+1) x [j, j+1) x [k, k+1) voxels; its value is the
 signed distance at its centre, positive in free space, clamped to +-truncation.
@@ -36,6 +41,9 @@ OVERFLOW = -2  # needed, but the pool was full
 FREE = -3  # observed, every voxel free (no surface within truncation)
 FREE_WEIGHT = 1.0  # the weight a query reports for a voxel of a FREE block
 SUM_ONE = 2.0**32  # a weight of 1 in the fixed-point build sums (2^31 in all per voxel)
+TILE = 8  # coarse cells per tile edge (a tile: 8^3 blocks, (3.2 m)^3 at 5 cm voxels)
+TILE_SHIFT = 3
+TILE_OVERFLOW = -1  # `tile_of` of a tile that did not fit in the tile pool
 
 
 @ti.func
@@ -74,13 +82,44 @@ def in_grid(m: ti.template(), g: ivec3) -> bool:
 
 
 @ti.func
-def block_id(m: ti.template(), bc: ivec3) -> ti.i32:
-    """coarse[bc]: the pool id of block bc, or UNKNOWN outside the grid."""
+def in_bounds(m: ti.template(), bc: ivec3) -> bool:
+    return (0 <= bc[0] < m.coarse_dims[0] and 0 <= bc[1] < m.coarse_dims[1]
+            and 0 <= bc[2] < m.coarse_dims[2])
+
+
+@ti.func
+def tile_id(m: ti.template(), bc: ivec3) -> ti.i32:
+    """The tile holding coarse cell bc (inside the bounds), -1 when it has none."""
+    return m.tile_of[bc[0] >> TILE_SHIFT, bc[1] >> TILE_SHIFT, bc[2] >> TILE_SHIFT] - 1
+
+
+@ti.func
+def tile_cell(m: ti.template(), t: ti.i32, bc: ivec3) -> ti.i32:
+    """Coarse cell bc's value in its tile t (block id, UNKNOWN, OVERFLOW or FREE)."""
+    return m.cells[t, bc[0] & (TILE - 1), bc[1] & (TILE - 1), bc[2] & (TILE - 1)] - 1
+
+
+@ti.func
+def set_tile_cell(m: ti.template(), t: ti.i32, bc: ivec3, value: ti.i32):
+    m.cells[t, bc[0] & (TILE - 1), bc[1] & (TILE - 1), bc[2] & (TILE - 1)] = value + 1
+
+
+@ti.func
+def coarse_cell(m: ti.template(), bc: ivec3) -> ti.i32:
+    """Coarse cell bc: its block id, or UNKNOWN (also outside the bounds and where no tile
+    was allocated), OVERFLOW or FREE."""
     b = UNKNOWN
-    if (0 <= bc[0] < m.coarse_dims[0] and 0 <= bc[1] < m.coarse_dims[1]
-            and 0 <= bc[2] < m.coarse_dims[2]):
-        b = m.coarse[bc[0], bc[1], bc[2]]
+    if in_bounds(m, bc):
+        t = tile_id(m, bc)
+        if t >= 0:
+            b = tile_cell(m, t, bc)
     return b
+
+
+@ti.func
+def block_id(m: ti.template(), bc: ivec3) -> ti.i32:
+    """The pool id of block bc, or UNKNOWN / OVERFLOW / FREE (UNKNOWN outside the grid)."""
+    return coarse_cell(m, bc)
 
 
 @ti.func
@@ -88,7 +127,7 @@ def voxel_dw(m: ti.template(), g: ivec3) -> vec2:
     """(signed distance, weight) of voxel g; unknown and outside the map give (trunc, 0)."""
     out = vec2(m.truncation_m, 0.0)
     if in_grid(m, g):
-        b = m.coarse[g[0] >> 3, g[1] >> 3, g[2] >> 3]
+        b = coarse_cell(m, g >> 3)
         if b >= 0:
             out = vec2(ti.cast(m.sdf[b, g[0] & 7, g[1] & 7, g[2] & 7], ti.f32),
                        ti.cast(m.weight[b, g[0] & 7, g[1] & 7, g[2] & 7], ti.f32))

@@ -16,7 +16,6 @@ import numpy as np
 import open3d as o3d
 import taichi as ti
 from pydantic import Field, model_validator
-from scipy.ndimage import maximum_filter1d
 from scipy.spatial import cKDTree
 
 from mcl3d.core import runtime
@@ -26,7 +25,8 @@ from mcl3d.core.geometry import rot_to_quat
 from mcl3d.core.progress import Progress, ProgressCallback, report
 from mcl3d.kernels import tsdf_fusion
 from mcl3d.maps.normals import oriented_normals
-from mcl3d.maps.tsdf import BLOCK, CHUNK_CELLS, MapGeometry, TsdfMap
+from mcl3d.maps.sparse_cells import CellLookup, dilate_cells, tiles_of
+from mcl3d.maps.tsdf import BLOCK, CHUNK_CELLS, MIN_BUILD_TILES, MapGeometry, TsdfMap
 
 TRUNCATION_VOXELS = 4
 CPU_RUN_LENGTH = 64
@@ -95,15 +95,18 @@ class BuildConfig(Section):
         return self.sigma_weight_m or self.voxel_size_m
 
 
-def new_map(geometry: MapGeometry, config: BuildConfig, needed: int = 0) -> TsdfMap:
-    """A writable map sized min(all cells, capacity) or to `needed` blocks when known."""
+def new_map(geometry: MapGeometry, config: BuildConfig, needed: int = 0,
+            needed_tiles: int = 0) -> TsdfMap:
+    """A writable map sized min(all cells, capacity) or to `needed` blocks when known; its
+    coarse index to `needed_tiles` tiles when known (else TsdfMap's default)."""
     capacity = min(geometry.n_cells, max(config.capacity_blocks, needed))
     if capacity > config.max_capacity_blocks:
         raise MapError(
             f"the map needs {needed or capacity} blocks, more than max_capacity_blocks "
             f"{config.max_capacity_blocks}; raise it or use a larger voxel size",
             setting="max_capacity_blocks")
-    tsdf = TsdfMap(geometry, capacity, frame_id=config.frame_id)
+    tiles = max(capacity // 2, MIN_BUILD_TILES, needed_tiles)
+    tsdf = TsdfMap(geometry, capacity, frame_id=config.frame_id, capacity_tiles=tiles)
     tsdf.as_sums = True
     return tsdf
 
@@ -117,6 +120,12 @@ def grown_capacity(tsdf: TsdfMap, config: BuildConfig) -> int:
             f"{config.max_capacity_blocks}; raise it to at least {needed} or use a larger "
             f"voxel size", setting="max_capacity_blocks")
     return min(int(needed * 1.25) + 16, config.max_capacity_blocks)
+
+
+def grown_tiles(tsdf: TsdfMap) -> int:
+    """Tiles of the coarse index for a retry after an overflow (at most one per top-grid
+    cell, so tiles never fail a retry)."""
+    return min(int(tsdf.requested_tiles * 1.25) + 16, tsdf.geometry.n_top_cells)
 
 
 # ------------------------------------------------------------------------- scans
@@ -208,7 +217,8 @@ class ScanFuser:
         return PreparedScan(pts, nrm, a, args)
 
     def allocate(self, scan: PreparedScan) -> None:
-        """Pass 1: allocate (and initialize) the blocks the scan's bands reach."""
+        """Pass 1: allocate (and initialize) the blocks the scan's bands reach, and claim the
+        tiles of the coarse index that pass 2 carves in."""
         m = self.tsdf
         n = len(scan.points_l)
         before = m.requested_blocks
@@ -216,8 +226,9 @@ class ScanFuser:
         # runs only serve to spread points over cpu threads; a GPU thread takes one point
         # (runs of several lost points on Mesa's lavapipe)
         runs = run_length() if threads > 1 else 1
-        tsdf_fusion.scan_allocate(m, scan.points_l, scan.normals_l, scan.alpha, n, *scan.args,
-                                  *self._ray_buffers(n), runs, threads)
+        m.relaunch_until_placed(lambda: tsdf_fusion.scan_allocate(
+            m, scan.points_l, scan.normals_l, scan.alpha, n, *scan.args, *self._ray_buffers(n),
+            runs, threads, self.config.carve_free_space))
         m.init_new_blocks(before, m.requested_blocks)
 
     def update(self, scan: PreparedScan, carve: bool) -> None:
@@ -264,14 +275,12 @@ def ray_spacing_rad(points_l: np.ndarray) -> float:
 
 # ---------------------------------------------------------------- free-space blocks
 def _candidate_cells(tsdf: TsdfMap, margin_m: float) -> np.ndarray:
-    """Unallocated cells within margin of an allocated block, as (k, 3) coordinates."""
-    coarse = tsdf.coarse_numpy()
-    near = (coarse >= 0).astype(np.uint8)
+    """Unallocated cells within margin of an allocated block, as (k, 3) coordinates (a
+    sparse dilation: never a grid over the bounds)."""
+    cells, values = tsdf.coarse_cells()
     r = int(np.ceil(margin_m / tsdf.geometry.block_size_m))
-    if r > 0:
-        for axis in range(3):
-            near = maximum_filter1d(near, size=2 * r + 1, axis=axis)
-    return np.argwhere((near > 0) & (coarse < 0)).astype(np.int32)
+    near = dilate_cells(cells[values >= 0], r, tsdf.coarse_dims)
+    return near[CellLookup(cells, values, tsdf.coarse_dims)(near) < 0]
 
 
 def _cell_centers(tsdf: TsdfMap, cells: np.ndarray) -> np.ndarray:
@@ -333,9 +342,13 @@ def build_from_points(points: np.ndarray, config: BuildConfig, *,
     pts32 = np.ascontiguousarray(pts, dtype=np.float32)
     nrm32 = np.ascontiguousarray(nrm, dtype=np.float32)
     tsdf = new_map(geometry, config, _cube_blocks(geometry, pts, radius))
-    for s in range(0, len(pts32), CHUNK_CELLS):
-        e = min(len(pts32), s + CHUNK_CELLS)
-        tsdf_fusion.points_allocate(tsdf, pts32[s:e], e - s, radius)
+
+    def allocate():
+        for s in range(0, len(pts32), CHUNK_CELLS):
+            e = min(len(pts32), s + CHUNK_CELLS)
+            tsdf_fusion.points_allocate(tsdf, pts32[s:e], e - s, radius)
+
+    tsdf.relaunch_until_placed(allocate)
     tsdf.check_capacity()
     tsdf.init_new_blocks(0, tsdf.n_blocks)
     per_launch = max(1, (4 << 20) // (2 * radius + 1) ** 3)
@@ -485,7 +498,7 @@ def build_from_mesh(vertices: np.ndarray, triangles: np.ndarray, config: BuildCo
     near = np.abs(sd) < trunc + half_diag + 1e-6
     free = sd >= trunc + half_diag
     near_cells = cells[near]
-    tsdf = new_map(geometry, config, len(near_cells))
+    tsdf = new_map(geometry, config, len(near_cells), len(tiles_of(cells[near | free])))
     tsdf.as_sums = False
     tsdf.mark_free(cells[free])
     tsdf.allocate(near_cells)

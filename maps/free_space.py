@@ -12,20 +12,24 @@ from __future__ import annotations
 import numpy as np
 
 from mcl3d.core.errors import ConfigError, MapError
+from mcl3d.maps.sparse_cells import CellLookup
 from mcl3d.maps.tsdf import BLOCK, TsdfMap
 
 
 class HostMap:
-    """A host copy of a map with vectorized nearest-voxel lookups (NumPy reference)."""
+    """A host copy of a map with vectorized nearest-voxel lookups (NumPy reference); its
+    coarse cells are sparse lists, memory per known cell."""
 
     FREE = -3
 
     def __init__(self, tsdf: TsdfMap):
         self.geometry = tsdf.geometry
-        self.coarse = tsdf.coarse_numpy()
+        cells, values = tsdf.coarse_cells()
+        self.coarse = CellLookup(cells, values, tsdf.coarse_dims)
+        self.free_blocks = cells[values == self.FREE]
         self.data = tsdf.blocks()  # block id b is row b (pool order)
         self.trunc = tsdf.truncation_m
-        self.dims = np.asarray(self.coarse.shape) * BLOCK
+        self.dims = np.asarray(tsdf.coarse_dims) * BLOCK
 
     def voxel_dw(self, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(d, w) of voxels g (..., 3): unknown/outside -> (trunc, 0), FREE -> (trunc, 1)."""
@@ -36,7 +40,7 @@ class HostMap:
         w = np.zeros(len(g), np.float32)
         inside = np.all((g >= 0) & (g < self.dims), axis=1)
         gi = g[inside]
-        b = self.coarse[gi[:, 0] >> 3, gi[:, 1] >> 3, gi[:, 2] >> 3]
+        b = self.coarse(gi >> 3)
         di = np.full(len(gi), self.trunc, np.float32)
         wi = np.zeros(len(gi), np.float32)
         alloc = b >= 0
@@ -56,7 +60,7 @@ class HostMap:
         free = (data.weight > 0) & (data.sdf >= self.trunc * 0.999)
         b, i, j, k = np.nonzero(free)
         vox = data.coords[b].astype(np.int64) * BLOCK + np.stack([i, j, k], axis=1)
-        blocks = np.argwhere(self.coarse == self.FREE).astype(np.int64) * BLOCK
+        blocks = self.free_blocks.astype(np.int64) * BLOCK
         corners = np.concatenate([vox, blocks])
         sizes = np.concatenate([np.ones(len(vox)), np.full(len(blocks), BLOCK)])
         return corners, sizes

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from mcl3d.core.errors import InputError, MapError
+from mcl3d.maps.sparse_cells import tiles_of
 from mcl3d.maps.tsdf import BLOCK, MapGeometry, TsdfMap
 
 CHUNK = 64
@@ -93,9 +94,10 @@ def import_hatsdf(path: Path, truncation_m: float = TRUNCATION_M, frame_id: str 
         free.append(base + local[all_free])
         sdf.append(np.where(ww[keep] > 0, v[keep], truncation_m))
         weight.append(ww[keep])
-    coords = np.concatenate(coords).astype(np.int32)
-    tsdf = TsdfMap(geometry, max(len(coords), 1), writable=False, frame_id=frame_id)
-    tsdf.mark_free(np.concatenate(free))
+    coords, free = np.concatenate(coords).astype(np.int32), np.concatenate(free)
+    tsdf = TsdfMap(geometry, max(len(coords), 1), writable=False, frame_id=frame_id,
+                   capacity_tiles=max(len(tiles_of(np.concatenate([coords, free]))), 1))
+    tsdf.mark_free(free)
     tsdf.allocate(coords)
     tsdf.write_blocks(coords, np.concatenate(sdf), np.concatenate(weight))
     return tsdf

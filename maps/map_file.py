@@ -9,7 +9,13 @@ Members:
 - `sdf` (n, 8, 8, 8) float32 or float16 — signed distance in m at voxel centres, indexed
   [block, x, y, z];
 - `weight` (n, 8, 8, 8) same dtype — observation weight, 0 = unknown;
-- `free_coords` (k, 3) int32 — blocks observed free of surfaces (not stored voxel by voxel).
+- `free_tiles` (k, 3) int32 and `free_masks` (k, 64) uint8 — blocks observed free of
+  surfaces, as tiles of 8³ coarse cells (lexicographic order) with one bit per cell
+  (C order, np.packbits' bit order): a kilometre of carved free space costs a few bytes per
+  tile instead of 12 per block.
+
+Version 1 (still read, converted on load) stored the free blocks as `free_coords` (k, 3)
+int32 instead of the tiles and masks, and had no `coarse_index` in its header.
 
 Zip members carry CRC-32 checksums, so truncated or corrupted files are caught on load.
 Only allocated blocks are stored, compressed; unknown space costs nothing.
@@ -27,11 +33,14 @@ import numpy as np
 from mcl3d import __version__
 from mcl3d.core.errors import ConfigError, MapError
 from mcl3d.core.outputs import atomic_path
+from mcl3d.maps.sparse_cells import MASK_BYTES, TILE, cells_to_masks, masks_to_cells, tiles_of
 from mcl3d.maps.tsdf import BLOCK, BlockData, MapGeometry, TsdfMap
 
 FORMAT = "mcl3d-tsdf"
-FORMAT_VERSION = 1
-MEMBERS = ("header", "block_coords", "sdf", "weight", "free_coords")
+FORMAT_VERSION = 2
+READ_VERSIONS = (1, 2)
+MEMBERS = {1: ("header", "block_coords", "sdf", "weight", "free_coords"),
+           2: ("header", "block_coords", "sdf", "weight", "free_tiles", "free_masks")}
 ZIP_DATE = (1980, 1, 1, 0, 0, 0)  # every member's date (the earliest a zip can hold)
 
 
@@ -53,6 +62,7 @@ def make_header(tsdf: TsdfMap, data: BlockData, source: dict, build: dict,
         "weight_dtype": dtype,
         "n_blocks": len(data.coords),
         "n_free_blocks": len(data.free_coords),
+        "coarse_index": {"kind": "tiles", "tile_cells": TILE},
         "source": source,
         "build": build,
     }
@@ -65,11 +75,13 @@ def save_map(path: Path, tsdf: TsdfMap, *, source: dict, build: dict,
     data = tsdf.blocks().sorted()
     header = make_header(tsdf, data, source, build, f16)
     dtype = np.float16 if f16 else np.float32
+    free_tiles, free_masks = cells_to_masks(data.free_coords)
+    header["n_free_tiles"] = len(free_tiles)
     with atomic_path(Path(path)) as tmp, open(tmp, "wb") as f:
         _write_npz(f, {"header": np.array(json.dumps(header)),
                        "block_coords": data.coords.astype(np.int32),
                        "sdf": data.sdf.astype(dtype), "weight": data.weight.astype(dtype),
-                       "free_coords": data.free_coords.astype(np.int32)})
+                       "free_tiles": free_tiles, "free_masks": free_masks})
     return header
 
 
@@ -96,11 +108,15 @@ def _open(path: Path):
         npz = np.load(path, allow_pickle=False)
     except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
         raise MapError(f"{path} is truncated or corrupt: {exc}") from exc
-    missing = [m for m in MEMBERS if m not in npz.files]
+    _check_members(path, npz, ("header",))
+    return npz
+
+
+def _check_members(path: Path, npz, names) -> None:
+    missing = [m for m in names if m not in npz.files]
     if missing:
         raise MapError(f"{path} lacks the member(s) {', '.join(missing)}; "
                        f"it is not a complete mcl3d map")
-    return npz
 
 
 def _member(npz, path: Path, name: str) -> np.ndarray:
@@ -114,14 +130,17 @@ def _check_header(path: Path, header: dict) -> MapGeometry:
     if header.get("format") != FORMAT:
         raise MapError(f"{path} is not an mcl3d TSDF map (format {header.get('format')!r})")
     version = header.get("format_version")
-    if version != FORMAT_VERSION:
+    if version not in READ_VERSIONS:
         raise MapError(f"{path} has map format version {version}; this mcl3d "
-                       f"({__version__}) reads version {FORMAT_VERSION}; rebuild the map "
-                       f"with `mcl3d build-map` or use a matching mcl3d version")
+                       f"({__version__}) reads versions 1 and {FORMAT_VERSION}; rebuild the "
+                       f"map with `mcl3d build-map` or use a matching mcl3d version")
     for key in ("voxel_size_m", "truncation_m", "origin_m", "coarse_dims", "n_blocks",
                 "n_free_blocks", "distance_dtype", "frame_id"):
         if key not in header:
             raise MapError(f"{path}: header lacks '{key}'")
+    if version >= 2 and header.get("coarse_index") != {"kind": "tiles", "tile_cells": TILE}:
+        raise MapError(f"{path}: unknown coarse index {header.get('coarse_index')!r}, expected "
+                       f"tiles of {TILE} cells")
     if header.get("block_size_voxels") != BLOCK:
         raise MapError(f"{path}: block size {header.get('block_size_voxels')} voxels, "
                        f"expected {BLOCK}")
@@ -166,10 +185,13 @@ def read_blocks(path: Path) -> tuple[dict, MapGeometry, BlockData]:
     geometry = _check_header(path, header)
     dims = np.asarray(geometry.coarse_dims)
     with _open(path) as npz:
+        _check_members(path, npz, MEMBERS[header["format_version"]])
         coords = _member(npz, path, "block_coords")
         sdf = _member(npz, path, "sdf")
         weight = _member(npz, path, "weight")
-        free = _member(npz, path, "free_coords")
+        free = (_member(npz, path, "free_coords") if header["format_version"] == 1
+                else _free_cells(path, header, _member(npz, path, "free_tiles"),
+                                 _member(npz, path, "free_masks"), geometry.top_dims))
     n = int(header["n_blocks"])
     _check_coords(path, "block_coords", coords, n, dims)
     _check_coords(path, "free_coords", free, int(header["n_free_blocks"]), dims)
@@ -192,6 +214,17 @@ def read_blocks(path: Path) -> tuple[dict, MapGeometry, BlockData]:
                                        free.astype(np.int32))
 
 
+def _free_cells(path: Path, header: dict, tiles: np.ndarray, masks: np.ndarray,
+                top_dims) -> np.ndarray:
+    """The FREE cells of a version-2 file, its tiles and masks checked."""
+    k = int(header.get("n_free_tiles", -1))
+    _check_coords(path, "free_tiles", tiles, k, np.asarray(top_dims))
+    if masks.shape != (k, MASK_BYTES) or masks.dtype != np.uint8:
+        raise MapError(f"{path}: 'free_masks' has shape {masks.shape} dtype {masks.dtype}, "
+                       f"expected ({k}, {MASK_BYTES}) uint8 (inconsistent sizes)")
+    return masks_to_cells(tiles, masks)
+
+
 def coarse_overlap(a: np.ndarray, b: np.ndarray) -> bool:
     both = np.concatenate([a, b]).astype(np.int64)
     return len(np.unique(both, axis=0)) != len(both)
@@ -205,8 +238,9 @@ def load_map(path: Path, *, f16: bool | None = None) -> TsdfMap:
     """
     header, geometry, data = read_blocks(path)
     use_f16 = header["distance_dtype"] == "float16" if f16 is None else f16
+    n_tiles = len(tiles_of(np.concatenate([data.coords, data.free_coords])))
     tsdf = TsdfMap(geometry, max(len(data.coords), 1), f16=use_f16, writable=False,
-                   frame_id=str(header["frame_id"]))
+                   frame_id=str(header["frame_id"]), capacity_tiles=max(n_tiles, 1))
     tsdf.mark_free(data.free_coords)
     tsdf.allocate(data.coords)
     tsdf.write_blocks(data.coords, data.sdf, data.weight)

@@ -1,9 +1,21 @@
-"""The two-level TSDF container: a dense coarse grid of block ids + a pool of 8³ blocks.
+"""The two-level TSDF container: a sparse coarse index of block ids + a pool of 8³ blocks.
 
-The container owns the Taichi fields (allocated once, from the capacity given) and the
+The container owns the Taichi fields (allocated once, from the capacities given) and the
 map's geometry; the kernels that read and write them live in mcl3d.kernels.tsdf_* and take
 the container as a template argument, so lookups compile to plain field reads on every
-backend. Geometry (voxel size, truncation, origin, dims) is fixed at construction.
+backend. Geometry (voxel size, truncation, origin, bounds) is fixed at construction.
+
+The coarse index (one cell per 8³-voxel block: its pool id, or unknown / free) is sparse,
+made of dense fields only, since Vulkan rejects Taichi's pointer and dynamic SNodes: a top
+grid of tile ids over the map's bounds, one per 8³ coarse cells, and a pool of tiles, each a
+dense 8³ index of cells, claimed on demand by an atomic flag and counter as blocks are. We
+chose tiles over a hashed index because a lookup stays two dependent reads with no probing
+(the likelihood does one per point per particle) and allocation keeps the blocks' one-winner
+scheme; the price is the top grid, 8 bytes per (3.2 m)³ of bounds at 5 cm voxels (12 MiB
+for 1 km x 1 km x 50 m, where the dense index took 6 GiB). Memory then grows with observed
+space: a tile (4 KiB) exists where a block was allocated or a cell observed free, so it grows
+with the surface plus the free space carved around it (within a tile of the rays), not with
+the bounds.
 """
 
 from __future__ import annotations
@@ -17,11 +29,17 @@ import taichi as ti
 from mcl3d.core import runtime
 from mcl3d.core.errors import ConfigError, MapError
 from mcl3d.kernels import tsdf_blocks, tsdf_fusion
-from mcl3d.kernels.tsdf_lookup import BLOCK, FREE, UNKNOWN
+from mcl3d.kernels.tsdf_lookup import BLOCK, FREE, TILE, UNKNOWN
+from mcl3d.maps.sparse_cells import tiles_of
 
 VOXELS_PER_BLOCK = BLOCK**3
+CELLS_PER_TILE = TILE**3
 CHUNK_BLOCKS = 8192  # blocks per launch: 8192 * 512 = 4M iterations, under Vulkan's 8M limit
 CHUNK_CELLS = 4 << 20  # coarse cells per launch and points per launch
+TOP_CELL_BYTES = 8  # tile id + claim flag
+TILE_BYTES = CELLS_PER_TILE * 8 + 12  # cells + claim flags, and the tile's coordinate
+DENSE_CELL_BYTES = 8  # the former dense coarse grid: block id + allocation flag per cell
+MIN_BUILD_TILES = 1024
 
 
 @dataclass(frozen=True)
@@ -51,7 +69,17 @@ class MapGeometry:
 
     @property
     def n_cells(self) -> int:
+        """Coarse cells within the bounds (most of them unknown)."""
         return int(np.prod(self.coarse_dims))
+
+    @property
+    def top_dims(self) -> tuple[int, int, int]:
+        """The top grid of the coarse index: one tile per TILE³ coarse cells."""
+        return tuple(-(-int(d) // TILE) for d in self.coarse_dims)
+
+    @property
+    def n_top_cells(self) -> int:
+        return int(np.prod(self.top_dims))
 
     @property
     def extent_m(self) -> tuple[np.ndarray, np.ndarray]:
@@ -69,7 +97,7 @@ class MapGeometry:
         block = voxel_size_m * BLOCK
         origin = np.round(np.floor(lo / block) * block, 9)
         dims = np.maximum(np.ceil((hi - origin) / block).astype(np.int64), 1)
-        if np.prod(dims) > 2**31 - 1 or np.any(dims * BLOCK >= 2**30):
+        if np.prod(-(-dims // TILE)) > 2**28 or np.any(dims * BLOCK >= 2**30):
             raise ConfigError(
                 f"the map bounds {lo.round(1)} .. {hi.round(1)} m need {dims.tolist()} blocks of "
                 f"{block} m: too large; use a larger voxel size or crop the input")
@@ -120,21 +148,27 @@ class TsdfMap:
     `f16` stores distances (and weights) in half precision: half the memory for read-only
     localization maps. A `writable` map (one being built) also holds its free-space hits
     and (but on Vulkan) the fixed-point sums of fusion: 28 bytes a voxel instead of 8 (f32)
-    or 4 (f16).
+    or 4 (f16). `capacity_tiles` sizes the coarse index's tile pool (default: a tile per
+    block of capacity, at least MIN_BUILD_TILES; never more than one per top-grid cell).
     """
 
     def __init__(self, geometry: MapGeometry, capacity_blocks: int, *, f16: bool = False,
-                 writable: bool = True, frame_id: str = "map"):
+                 writable: bool = True, frame_id: str = "map",
+                 capacity_tiles: int | None = None):
         _require_runtime()
         if capacity_blocks < 1:
             raise ConfigError(f"map capacity must be >= 1 block, got {capacity_blocks}")
+        if capacity_tiles is None:
+            capacity_tiles = max(capacity_blocks, MIN_BUILD_TILES)
         self.geometry = geometry
         self.frame_id = frame_id
         self.voxel_size_m = float(geometry.voxel_size_m)
         self.truncation_m = float(geometry.truncation_m)
         self.origin_m = tuple(float(x) for x in geometry.origin_m)
         self.coarse_dims = tuple(int(x) for x in geometry.coarse_dims)
+        self.top_dims = geometry.top_dims
         self.capacity = int(capacity_blocks)
+        self.tile_capacity = max(1, min(int(capacity_tiles), geometry.n_top_cells))
         self.f16 = bool(f16)
         if f16 and writable:
             raise ConfigError("an f16 map is read-only: build in f32, store with f16 "
@@ -144,9 +178,7 @@ class TsdfMap:
         self.as_sums = False  # True while being built: the pool holds sums, not distances
         dtype = ti.f16 if f16 else ti.f32
         builder = ti.FieldsBuilder()
-        self.coarse = ti.field(ti.i32)
-        self.alloc_flag = ti.field(ti.i32)
-        builder.dense(ti.ijk, self.coarse_dims).place(self.coarse, self.alloc_flag)
+        self._place_coarse_index(builder)
         self.block_count = ti.field(ti.i32)
         builder.place(self.block_count)
         self.block_coord = ti.Vector.field(3, ti.i32)
@@ -169,6 +201,20 @@ class TsdfMap:
         self._used_slots = 0  # pool slots [used, capacity) still hold zeros (never written)
         self.clear()
 
+    def _place_coarse_index(self, builder) -> None:
+        """The top grid and the tile pool (tsdf_lookup); ids and claim flags in separate
+        arrays, so that lookups read only ids."""
+        self.tile_of, self.tile_flag = ti.field(ti.i32), ti.field(ti.i32)
+        builder.dense(ti.ijk, self.top_dims).place(self.tile_of)
+        builder.dense(ti.ijk, self.top_dims).place(self.tile_flag)
+        self.cells, self.cell_flag = ti.field(ti.i32), ti.field(ti.i32)
+        builder.dense(ti.i, self.tile_capacity).dense(ti.jkl, TILE).place(self.cells)
+        builder.dense(ti.i, self.tile_capacity).dense(ti.jkl, TILE).place(self.cell_flag)
+        self.tile_coord = ti.Vector.field(3, ti.i32)
+        builder.dense(ti.i, self.tile_capacity).place(self.tile_coord)
+        self.tile_count, self.tile_misses = ti.field(ti.i32), ti.field(ti.i32)
+        builder.place(self.tile_count, self.tile_misses)
+
     def _place_sums(self):
         """The i64 build sums in a tree of their own, so that they start at byte 0 (8-byte
         atomics need 8-byte alignment; the main tree's i32 fields come first)."""
@@ -179,10 +225,14 @@ class TsdfMap:
 
     # ------------------------------------------------------------------ bookkeeping
     def clear(self) -> None:
-        """Every cell unknown, no block allocated, every pool slot zero again."""
-        n = self.geometry.n_cells
+        """Every cell unknown, no tile claimed, no block allocated, every pool slot zero
+        again (tiles and slots ever used; the others never held anything else)."""
+        n = self.geometry.n_top_cells
         for start in range(0, n, CHUNK_CELLS):
-            tsdf_blocks.fill_coarse(self, start, min(CHUNK_CELLS, n - start), UNKNOWN)
+            tsdf_blocks.zero_top(self, start, min(CHUNK_CELLS, n - start))
+        tiles = self.n_tiles
+        for start in range(0, tiles, CHUNK_BLOCKS):
+            tsdf_blocks.zero_tiles(self, start, min(CHUNK_BLOCKS, tiles - start))
         used = max(self._used_slots, self.n_blocks)
         for start in range(0, used, CHUNK_BLOCKS):
             tsdf_blocks.zero_blocks(self, start, min(CHUNK_BLOCKS, used - start))
@@ -205,15 +255,43 @@ class TsdfMap:
         return min(self.requested_blocks, self.capacity)
 
     @property
+    def requested_tiles(self) -> int:
+        """Tiles of the coarse index claimed so far, including those that did not fit."""
+        return int(self.tile_count[None])
+
+    @property
+    def n_tiles(self) -> int:
+        return min(self.requested_tiles, self.tile_capacity)
+
+    @property
     def overflowed(self) -> bool:
-        return self.requested_blocks > self.capacity
+        """Blocks or tiles did not fit: the map is incomplete."""
+        return (self.requested_blocks > self.capacity
+                or self.requested_tiles > self.tile_capacity)
 
     def check_capacity(self) -> None:
-        if self.overflowed:
+        if self.requested_tiles > self.tile_capacity:
+            raise MapError(
+                f"the map's coarse index needs {self.requested_tiles} tiles but its capacity "
+                f"is {self.tile_capacity}; allow at least "
+                f"{int(self.requested_tiles * 1.1) + 1} tiles or use a larger voxel size",
+                setting="capacity_tiles")
+        if self.requested_blocks > self.capacity:
             raise MapError(
                 f"the map needs {self.requested_blocks} blocks but its capacity is "
                 f"{self.capacity}; allow at least {int(self.requested_blocks * 1.1) + 1} "
                 f"blocks or use a larger voxel size", setting="max_capacity_blocks")
+
+    def relaunch_until_placed(self, launch) -> None:
+        """Run `launch()` (idempotent kernel launches that claim tiles) again while a thread
+        found its tile claimed by another thread of the same launch (tsdf_blocks)."""
+        tsdf_blocks.take_misses(self)
+        for _ in range(64):
+            launch()
+            if tsdf_blocks.take_misses(self) == 0:
+                return
+        raise MapError("tiles of the coarse index were still contended after 64 launches; "
+                       "this is a bug, please report it")
 
     def init_new_blocks(self, start: int, end: int) -> None:
         """Initialize pool slots [start, end) after an allocation launch.
@@ -242,19 +320,26 @@ class TsdfMap:
     # ---------------------------------------------------------------- host transfer
     def allocate(self, coords: np.ndarray) -> None:
         """Allocate the given block coordinates (n, 3) and initialize the new blocks."""
-        coords = np.ascontiguousarray(coords, dtype=np.int32).reshape(-1, 3)
-        before = self.requested_blocks
-        for s in range(0, len(coords), CHUNK_CELLS):
-            part = coords[s:s + CHUNK_CELLS]
-            tsdf_blocks.allocate_coords(self, part, len(part))
-        self.init_new_blocks(before, self.requested_blocks)
-        self.check_capacity()
+        self._each_chunk(tsdf_blocks.allocate_coords, coords)
 
     def mark_free(self, coords: np.ndarray) -> None:
+        """Cells (n, 3) observed free of surfaces: unknown ones become FREE."""
+        self._each_chunk(tsdf_blocks.mark_free_coords, coords)
+
+    def _each_chunk(self, kernel, coords: np.ndarray) -> None:
+        """`kernel(self, part, n)` over chunks of coords until every cell found its tile;
+        new blocks initialized, capacity checked."""
         coords = np.ascontiguousarray(coords, dtype=np.int32).reshape(-1, 3)
-        for s in range(0, len(coords), CHUNK_CELLS):
-            part = coords[s:s + CHUNK_CELLS]
-            tsdf_blocks.mark_free_coords(self, part, len(part))
+        before = self.requested_blocks
+
+        def launch():
+            for s in range(0, len(coords), CHUNK_CELLS):
+                part = coords[s:s + CHUNK_CELLS]
+                kernel(self, part, len(part))
+
+        self.relaunch_until_placed(launch)
+        self.init_new_blocks(before, self.requested_blocks)
+        self.check_capacity()
 
     def write_blocks(self, coords: np.ndarray, sdf: np.ndarray, weight: np.ndarray) -> None:
         """Set values of allocated blocks (coords (n,3), sdf/weight (n,8,8,8))."""
@@ -265,8 +350,23 @@ class TsdfMap:
                            np.ascontiguousarray(sdf[s:e], dtype=np.float32),
                            np.ascontiguousarray(weight[s:e], dtype=np.float32), e - s)
 
-    def coarse_numpy(self) -> np.ndarray:
-        return self.coarse.to_numpy()
+    def coarse_cells(self) -> tuple[np.ndarray, np.ndarray]:
+        """The known coarse cells, sparse: (coords (n, 3) int32, values (n,) int32: block
+        id, FREE or OVERFLOW); every other cell is UNKNOWN."""
+        coords, values = [], []
+        n = self.n_tiles
+        local = np.stack(np.meshgrid(*[np.arange(TILE)] * 3, indexing="ij"), axis=-1)
+        for s in range(0, n, CHUNK_BLOCKS):
+            e = min(s + CHUNK_BLOCKS, n)
+            tc = np.zeros((e - s, 3), np.int32)
+            cells = np.zeros((e - s, TILE, TILE, TILE), np.int32)
+            tsdf_blocks.read_tiles(self, s, e - s, tc, cells)
+            known = cells != UNKNOWN
+            coords.append((tc.astype(np.int64)[:, None, None, None, :] * TILE + local)[known])
+            values.append(cells[known])
+        if not coords:
+            return np.zeros((0, 3), np.int32), np.zeros(0, np.int32)
+        return (np.concatenate(coords).astype(np.int32), np.concatenate(values))
 
     def blocks(self) -> BlockData:
         """Copy the allocated blocks and the FREE block list to the host."""
@@ -281,9 +381,8 @@ class TsdfMap:
             w = np.zeros_like(d)
             tsdf_blocks.read_blocks(self, s, e - s, c, d, w, int(self.as_sums))
             coords[s:e], sdf[s:e], weight[s:e] = c, d, w
-        coarse = self.coarse_numpy()
-        free = np.argwhere(coarse == FREE).astype(np.int32)
-        return BlockData(coords, sdf, weight, free)
+        cells, values = self.coarse_cells()
+        return BlockData(coords, sdf, weight, cells[values == FREE])
 
 
 @dataclass(frozen=True)
@@ -299,8 +398,12 @@ class MapStats:
     surface_voxels: int  # within half a voxel diagonal of the surface
     bytes_per_block: int
     pool_bytes: int
-    coarse_bytes: int
-    dense_grid_bytes: int  # a dense grid of the same extent
+    coarse_bytes: int  # the sparse coarse index: top grid + tiles
+    coarse_top_bytes: int
+    tiles: int
+    coarse_tile_bytes: int
+    dense_index_bytes: int  # the former dense coarse grid (block id + flag per cell)
+    dense_grid_bytes: int  # a dense voxel grid of the same extent
     extent_lo_m: list[float]
     extent_hi_m: list[float]
     file_bytes: int | None = None  # the map file, when there is one
@@ -313,7 +416,10 @@ class MapStats:
                            "free": self.free_voxels},
                 "memory": {"bytes_per_block": self.bytes_per_block,
                            "pool_bytes": self.pool_bytes, "coarse_bytes": self.coarse_bytes,
+                           "coarse_top_bytes": self.coarse_top_bytes, "tiles": self.tiles,
+                           "coarse_tile_bytes": self.coarse_tile_bytes,
                            "loaded_bytes": self.pool_bytes + self.coarse_bytes,
+                           "dense_index_bytes": self.dense_index_bytes,
                            "dense_grid_bytes": self.dense_grid_bytes,
                            "file_bytes": self.file_bytes}}
 
@@ -332,6 +438,8 @@ def block_stats(geometry: MapGeometry, data: BlockData, bytes_per_block: int) ->
     surface = observed & (np.abs(data.sdf) < 0.5 * geometry.voxel_size_m * np.sqrt(3))
     n_blocks, n_free = len(data.coords), len(data.free_coords)
     bytes_per_voxel = data.sdf.dtype.itemsize + data.weight.dtype.itemsize
+    n_tiles = len(tiles_of(np.concatenate([data.coords, data.free_coords])))
+    top_bytes = geometry.n_top_cells * TOP_CELL_BYTES
     lo, hi = geometry.extent_m
     return MapStats(
         blocks=n_blocks,
@@ -342,7 +450,11 @@ def block_stats(geometry: MapGeometry, data: BlockData, bytes_per_block: int) ->
         surface_voxels=int(surface.sum()),
         bytes_per_block=bytes_per_block,
         pool_bytes=n_blocks * bytes_per_block,
-        coarse_bytes=geometry.n_cells * 4,
+        coarse_bytes=top_bytes + n_tiles * TILE_BYTES,
+        coarse_top_bytes=top_bytes,
+        tiles=n_tiles,
+        coarse_tile_bytes=n_tiles * TILE_BYTES,
+        dense_index_bytes=geometry.n_cells * DENSE_CELL_BYTES,
         dense_grid_bytes=geometry.n_cells * VOXELS_PER_BLOCK * bytes_per_voxel,
         extent_lo_m=[round(float(x), 3) for x in lo],
         extent_hi_m=[round(float(x), 3) for x in hi],

@@ -17,6 +17,7 @@ from scipy.ndimage import distance_transform_edt
 
 from mcl3d.core.config import Section
 from mcl3d.core.geometry import quat_to_rot
+from mcl3d.maps.sparse_cells import CellLookup
 from mcl3d.registration.preprocess import deskew
 
 BLOCK = 8
@@ -156,9 +157,10 @@ def reduce_scan(points: np.ndarray, cfg: SensorModelConfig, rng: np.random.Gener
 
 @dataclass
 class NumpyTsdf:
-    """The TSDF on the host (coarse grid of pool indices + pool), for the NumPy twin."""
+    """The TSDF on the host (sparse coarse cells -> pool indices + pool), for the NumPy
+    twin."""
 
-    coarse: np.ndarray  # (cx, cy, cz) int32
+    coarse: CellLookup  # coarse cell (..., 3) -> pool index, FREE or UNKNOWN
     sdf: np.ndarray  # (nb, 8, 8, 8) float32
     weight: np.ndarray  # (nb, 8, 8, 8) float32
     origin_m: np.ndarray
@@ -168,18 +170,15 @@ class NumpyTsdf:
     @staticmethod
     def of(tsdf) -> NumpyTsdf:
         data = tsdf.blocks()  # rows in pool order, so coarse ids index them directly
-        return NumpyTsdf(tsdf.coarse_numpy(), data.sdf.astype(np.float32),
-                       data.weight.astype(np.float32), np.asarray(tsdf.origin_m, np.float32),
-                       tsdf.voxel_size_m, tsdf.truncation_m)
+        return NumpyTsdf(CellLookup(*tsdf.coarse_cells(), tsdf.coarse_dims),
+                         data.sdf.astype(np.float32), data.weight.astype(np.float32),
+                         np.asarray(tsdf.origin_m, np.float32), tsdf.voxel_size_m,
+                         tsdf.truncation_m)
 
     def lookup(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(d, w, block id) of the voxel containing each point of p (..., 3)."""
         g = np.floor((p - self.origin_m) / np.float32(self.voxel_size_m)).astype(np.int64)
-        c = g >> 3
-        dims = np.asarray(self.coarse.shape)
-        inside = np.all((c >= 0) & (c < dims), axis=-1)
-        cc = np.where(inside[..., None], c, 0)
-        b = np.where(inside, self.coarse[cc[..., 0], cc[..., 1], cc[..., 2]], -1)
+        b = self.coarse(g >> 3)
         bi = np.maximum(b, 0)
         loc = g & 7
         d = np.where(b >= 0, self.sdf[bi, loc[..., 0], loc[..., 1], loc[..., 2]],

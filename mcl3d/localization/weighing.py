@@ -51,7 +51,7 @@ class ScanWeigher:
         self._table = ti.field(ti.f32, shape=kl.N_CODES)
         self._coarse_table = ti.field(ti.f32, shape=kl.COARSE_BINS + 2)
         self._table_sigma: float | None = None
-        self._slots = ti.field(ti.i32, shape=tsdf.coarse_dims)
+        self._slots = ti.field(ti.i32, shape=kl.slot_shape(tsdf))
         kl.build_slots(tsdf, self._slots)
         if cfg.model == "paper":  # eq. 3 precomputed per voxel (set_sigma fills it)
             self._values = ti.field(ti.f32, shape=(tsdf.capacity + 2, kl.BLOCK, kl.BLOCK,

@@ -225,14 +225,14 @@ def _build_from_log(req: BuildMapRequest, on_progress: ProgressCallback | None) 
         hi = np.maximum(scans.hi_m, traj.positions().max(axis=0))
         geometry = MapGeometry.around(lo, hi, cfg.voxel_size_m, cfg.trunc_m,
                                       margin_m=cfg.trunc_m + cfg.voxel_size_m)
-        needed = 0
+        needed = needed_tiles = 0
         while True:
-            tsdf = build.new_map(geometry, cfg, needed)
+            tsdf = build.new_map(geometry, cfg, needed, needed_tiles)
             fuser = build.ScanFuser(tsdf, cfg)
             _fuse_all(reader, traj, fuser, scans.n_scans, on_progress)
             if not tsdf.overflowed:
                 break
-            needed = build.grown_capacity(tsdf, cfg)
+            needed, needed_tiles = build.grown_capacity(tsdf, cfg), build.grown_tiles(tsdf)
             tsdf.destroy()
     tsdf.finalize()
     source = {"kind": "log", "path": str(req.source), "points_topic": reader.topics.points,
@@ -362,12 +362,17 @@ def map_rows(geometry: MapGeometry, stats: MapStats) -> list[tuple[str, str]]:
         ("voxel / truncation", f"{geometry.voxel_size_m} m / {geometry.truncation_m} m"),
         ("extent", f"{lo} .. {hi} m ({size[0]} x {size[1]} x {size[2]} m)"),
         ("coarse grid", " x ".join(str(d) for d in geometry.coarse_dims) + " blocks of 8³"),
+        ("coarse index", f"{format_bytes(stats.coarse_bytes)}: top grid "
+                         f"{format_bytes(stats.coarse_top_bytes)} + {stats.tiles} tiles "
+                         f"{format_bytes(stats.coarse_tile_bytes)} (dense: "
+                         f"{format_bytes(stats.dense_index_bytes)})"),
         ("blocks", f"{stats.blocks} allocated, {stats.free_blocks} free, "
                    f"{stats.unknown_cells} unknown"),
         ("voxels", f"{stats.surface_voxels} on the surface, {stats.observed_voxels} "
                    f"observed, {stats.free_voxels} free"),
-        ("memory (loaded)", f"{format_bytes(stats.pool_bytes + stats.coarse_bytes)} "
-                            f"({stats.bytes_per_block} B/block) vs dense grid "
+        ("memory (loaded)", f"{format_bytes(stats.pool_bytes + stats.coarse_bytes)}: blocks "
+                            f"{format_bytes(stats.pool_bytes)} ({stats.bytes_per_block} "
+                            f"B/block) + coarse index, vs dense grid "
                             f"{format_bytes(stats.dense_grid_bytes)}"),
         *([("file", format_bytes(stats.file_bytes))] if stats.file_bytes is not None else []),
     ]

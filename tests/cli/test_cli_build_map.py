@@ -68,7 +68,7 @@ def test_build_from_mesh_then_map_info_and_exports(ti_runtime, room_files, tmp_p
     assert out.is_file() and (tmp_path / "surface.ply").is_file()
     info = _invoke("map-info", out, "--export-points", tmp_path / "pts.pcd")
     assert info.exit_code == 0, info.output
-    assert "mcl3d-tsdf v1" in info.output and '"kind": "mesh"' in info.output
+    assert "mcl3d-tsdf v2" in info.output and '"kind": "mesh"' in info.output
     assert (tmp_path / "pts.pcd").stat().st_size > 1000
     again = _invoke("build-map", d / "room.ply", "-o", out)
     assert "(--force)" in _failed(again)
@@ -93,9 +93,10 @@ def _map_info_json_agrees_with_the_file_and_the_table(map_path, table, tmp_path)
     with np.load(map_path) as npz:
         header = json.loads(str(npz["header"]))
         sdf, weight = npz["sdf"], npz["weight"]
-        n_blocks, n_free = len(npz["block_coords"]), len(npz["free_coords"])
+        n_blocks, n_free = len(npz["block_coords"]), int(np.unpackbits(npz["free_masks"]).sum())
+        tiles = {tuple(c) for c in np.concatenate([npz["block_coords"] >> 3, npz["free_tiles"]])}
     assert doc["schema"] == "mcl3d.map_info/1" and doc["path"] == str(map_path)
-    assert (doc["format"], doc["format_version"]) == ("mcl3d-tsdf", 1)
+    assert (doc["format"], doc["format_version"]) == ("mcl3d-tsdf", 2)
     for key in ("mcl3d_version", "frame_id", "voxel_size_m", "truncation_m",
                 "origin_m", "coarse_dims", "source", "build"):
         assert doc[key] == header[key], key
@@ -116,7 +117,11 @@ def _map_info_json_agrees_with_the_file_and_the_table(map_path, table, tmp_path)
     memory = doc["memory"]
     assert memory["file_bytes"] == map_path.stat().st_size
     assert memory["pool_bytes"] == n_blocks * memory["bytes_per_block"]
-    assert memory["coarse_bytes"] == 4 * cells
+    top = 8 * int(np.prod(-(-np.asarray(header["coarse_dims"]) // 8)))
+    assert memory["tiles"] == len(tiles) and memory["coarse_top_bytes"] == top
+    assert memory["coarse_bytes"] == top + memory["coarse_tile_bytes"]
+    assert memory["coarse_tile_bytes"] == len(tiles) * (512 * 8 + 12)
+    assert memory["dense_index_bytes"] == 8 * cells
     assert memory["loaded_bytes"] == memory["pool_bytes"] + memory["coarse_bytes"]
     triangles = len(o3d.io.read_triangle_mesh(str(tmp_path / "m.ply")).triangles)
     assert doc["exports"] == {"mesh": {"path": str(tmp_path / "m.ply"), "triangles": triangles},

@@ -15,20 +15,41 @@ from mcl3d.localization.sensor_model import (
 )
 
 
-def code_map(tsdf, cfg):
-    """The kernel's per-voxel codes (i32 words of two 16-bit codes) and coarse-cell slots."""
+def code_map(tsdf, cfg, tiled=False):
+    """The kernel's per-voxel codes (i32 words of two 16-bit codes) and coarse-cell slots,
+    dense over the bounds (as small maps have them) or `tiled` (as large maps)."""
     import taichi as ti
 
     from mcl3d.kernels import likelihood as kl
 
     codes = ti.field(ti.i32, shape=(tsdf.capacity + 2, kl.BLOCK, kl.BLOCK, kl.WORDS_Z))
-    slots = ti.field(ti.i32, shape=tsdf.coarse_dims)
+    shape = (tsdf.tile_capacity + 1, kl.TILE, kl.TILE, kl.TILE) if tiled else tsdf.coarse_dims
+    assert tiled or kl.slot_shape(tsdf) == shape
+    slots = ti.field(ti.i32, shape=shape)
     kl.build_codes(tsdf, codes, tsdf.n_blocks, cfg.match_dist_m)
     kl.build_slots(tsdf, slots)
     return codes, slots
 
 
-def run_kernel(tsdf, positions, quats, points, cfg, cache_block):
+def pool_slots(tsdf, slots, cells):
+    """likelihood.slot_of of each coarse cell (n, 3), as the hot loops read it."""
+    import taichi as ti
+
+    from mcl3d.kernels.likelihood import slot_of
+
+    @ti.kernel
+    def slots_of(m: ti.template(), slot: ti.template(),
+                 c: ti.types.ndarray(dtype=ti.math.ivec3, ndim=1),
+                 out: ti.types.ndarray(dtype=ti.i32, ndim=1)):
+        for i in range(c.shape[0]):
+            out[i] = slot_of(m, slot, c[i])
+
+    out = np.zeros(len(cells), np.int32)
+    slots_of(tsdf, slots, np.ascontiguousarray(cells, dtype=np.int32), out)
+    return out
+
+
+def run_kernel(tsdf, positions, quats, points, cfg, cache_block, tiled=False):
     import taichi as ti
 
     from mcl3d.kernels.likelihood import N_CODES, scan_log_likelihood
@@ -46,14 +67,15 @@ def run_kernel(tsdf, positions, quats, points, cfg, cache_block):
     log_w.from_numpy(np.full(n, 2.0, np.float32))  # the kernel adds to the previous weight
     order = ti.field(ti.i32, shape=n)  # any permutation: results are per particle
     order.from_numpy(np.random.default_rng(n).permutation(n).astype(np.int32))
-    codes, slots = code_map(tsdf, cfg)
+    codes, slots = code_map(tsdf, cfg, tiled)
     scan_log_likelihood(tsdf, codes, slots, order, pos, quat, n, pts, m, table,
                         cfg.tempering(m), log_w, match, ll_mean, cache_block)
     return log_w.to_numpy() - 2.0, match.to_numpy(), ll_mean.to_numpy()
 
 
-@pytest.mark.parametrize("cache_block", [False, True])
-def test_kernel_matches_numpy_twin(ti_runtime, cache_block):
+@pytest.mark.parametrize(("cache_block", "tiled"), [(False, False), (True, False),
+                                                    (False, True), (True, True)])
+def test_kernel_matches_numpy_twin(ti_runtime, cache_block, tiled):
     tsdf = floor_map()
     host = NumpyTsdf.of(tsdf)
     cfg = SensorModelConfig(sigma_m=0.05, effective_points=4.0)
@@ -62,7 +84,7 @@ def test_kernel_matches_numpy_twin(ti_runtime, cache_block):
     positions = rng.uniform([-0.3, -0.3, 0.3], [1.9, 1.9, 1.7], size=(n, 3))
     quats = geometry.rot_to_quat(geometry.random_rotations(rng, n))
     points = rng.normal(scale=0.6, size=(m, 3))
-    k_ll, k_match, k_mean = run_kernel(tsdf, positions, quats, points, cfg, cache_block)
+    k_ll, k_match, k_mean = run_kernel(tsdf, positions, quats, points, cfg, cache_block, tiled)
     r_ll, r_match, r_mean = scan_log_likelihood_numpy(host, positions, quats, points, cfg)
     # f32 transforms may put a point on the other side of a voxel face: allow a few
     per_point = np.abs(k_mean - r_mean) * m
@@ -81,11 +103,11 @@ def test_codes_match_the_model_at_every_voxel(ti_runtime):
     host = NumpyTsdf.of(tsdf)
     cfg = SensorModelConfig(sigma_m=0.05, match_dist_m=0.12)
     codes, slots = code_map(tsdf, cfg)
-    words, slot = codes.to_numpy(), slots.to_numpy()
+    words = codes.to_numpy()
     g = np.stack(np.meshgrid(*(np.arange(16),) * 3, indexing="ij"), axis=-1).reshape(-1, 3)
     p = (g + 0.5) * VOX
     d, w, b = host.lookup(p)
-    s = slot[g[:, 0] >> 3, g[:, 1] >> 3, g[:, 2] >> 3]
+    s = pool_slots(tsdf, slots, g >> 3)
     code = (words[s, g[:, 0] & 7, g[:, 1] & 7, (g[:, 2] & 7) >> 1] >> (16 * (g[:, 2] & 1))
             ) & 0xFFFF
     np.testing.assert_allclose(code_table(cfg, TRUNC)[code],
@@ -95,6 +117,35 @@ def test_codes_match_the_model_at_every_voxel(ti_runtime):
                                   observed & (np.abs(d) < cfg.match_dist_m))
     assert set(np.unique(s[b == -3])) == {tsdf.capacity}
     assert set(np.unique(s[b == -1])) == {tsdf.capacity + 1}
+
+
+def scattered_map():
+    """Blocks and FREE cells scattered over 3 x 2 x 2 tiles, some tiles left unclaimed."""
+    from mcl3d.maps.tsdf import MapGeometry, TsdfMap
+
+    tsdf = TsdfMap(MapGeometry(VOX, TRUNC, (0.0, 0.0, 0.0), (19, 10, 9)), 128)
+    rng = np.random.default_rng(5)
+    tsdf.mark_free(rng.integers(0, (19, 10, 9), size=(40, 3)))
+    tsdf.allocate(rng.integers(0, (19, 7, 9), size=(100, 3)))
+    return tsdf
+
+
+@pytest.mark.parametrize("tiled", [False, True])
+@pytest.mark.parametrize("make_map", [floor_map, scattered_map])
+def test_pool_slots_match_the_sparse_index(ti_runtime, make_map, tiled):
+    """Every coarse cell, inside and outside the bounds, reads its block through the top
+    grid and its tile: its id, `capacity` when FREE, `capacity + 1` when unknown."""
+    tsdf = make_map()
+    _, values = tsdf.coarse_cells()
+    dims = np.asarray(tsdf.coarse_dims)
+    g = np.stack(np.meshgrid(*[np.arange(-2, d + 2) for d in dims], indexing="ij"),
+                 axis=-1).reshape(-1, 3)
+    expected = NumpyTsdf.of(tsdf).coarse(g)
+    expected = np.where(expected >= 0, expected,
+                        np.where(expected == -3, tsdf.capacity, tsdf.capacity + 1))
+    slots = code_map(tsdf, SensorModelConfig(), tiled)[1]
+    np.testing.assert_array_equal(pool_slots(tsdf, slots, g), expected)
+    assert (values >= 0).sum() == tsdf.n_blocks and (values == -3).any()
 
 
 def test_locality_keys_match_numpy(ti_runtime):

@@ -33,7 +33,7 @@ def run_kernel(tsdf, positions, quats, points, cfg):
     order = ti.field(ti.i32, shape=n)
     order.from_numpy(np.random.default_rng(n).permutation(n).astype(np.int32))
     values = ti.field(ti.f32, shape=(tsdf.capacity + 2, 8, 8, 8))
-    slots = ti.field(ti.i32, shape=tsdf.coarse_dims)
+    slots = ti.field(ti.i32, shape=kl.slot_shape(tsdf))
     kl.build_slots(tsdf, slots)
     kpl.build_paper_values(tsdf, values, tsdf.n_blocks, SIGMA, cfg.z_hit)
     match_value = float(paper_value(cfg.match_dist_m, cfg, TRUNC, SIGMA))

@@ -38,7 +38,8 @@ def test_round_trip(ti_runtime, tmp_path, f16):
     path = tmp_path / "m.tsdf"
     _save(tsdf, path, f16=f16)
     header = read_header(path)
-    assert header["format"] == "mcl3d-tsdf" and header["format_version"] == 1
+    assert header["format"] == "mcl3d-tsdf" and header["format_version"] == 2
+    assert header["coarse_index"] == {"kind": "tiles", "tile_cells": 8}
     assert header["voxel_size_m"] == 0.1 and header["coarse_dims"] == [4, 3, 2]
     assert header["origin_m"] == [-1.0, -2.0, 0.5] and header["n_blocks"] == 3
     assert header["source"] == {"kind": "test"} and header["distance_dtype"] == (
@@ -52,6 +53,63 @@ def test_round_trip(ti_runtime, tmp_path, f16):
     np.testing.assert_allclose(data.sdf, sdf[order], atol=tol)
     np.testing.assert_allclose(data.weight, weight[order], atol=tol)
     assert {tuple(c) for c in data.free_coords} == {(2, 0, 0), (0, 1, 1)}
+
+
+def _as_version_1(src, dst):
+    """The map as version 1 wrote it: FREE blocks as a coordinate list, no coarse index in
+    the header (the members of a v1 file, written by numpy as v1 files were)."""
+    from mcl3d.maps.sparse_cells import masks_to_cells
+
+    with np.load(src) as npz:
+        members = {k: npz[k] for k in npz.files}
+    header = json.loads(str(members.pop("header")))
+    header["format_version"] = 1
+    del header["coarse_index"], header["n_free_tiles"]
+    free = masks_to_cells(members.pop("free_tiles"), members.pop("free_masks"))
+    with open(dst, "wb") as f:
+        np.savez_compressed(f, header=np.array(json.dumps(header)), free_coords=free,
+                            **members)
+
+
+@pytest.mark.parametrize("f16", [False, True])
+def test_version_1_files_load(ti_runtime, tmp_path, f16):
+    """A version-1 file loads into the sparse index as it was saved (converted on load),
+    and saving it again writes version 2 with the same blocks and free cells."""
+    from mcl3d.maps.map_file import load_map, read_blocks
+
+    tsdf, coords, sdf, weight = _small_map()
+    _save(tsdf, tmp_path / "v2.tsdf", f16=f16)
+    _as_version_1(tmp_path / "v2.tsdf", tmp_path / "v1.tsdf")
+    header, _, data = read_blocks(tmp_path / "v1.tsdf")
+    assert header["format_version"] == 1 and len(data.free_coords) == 2
+    loaded = load_map(tmp_path / "v1.tsdf")
+    got = loaded.blocks().sorted()
+    order = np.lexsort(coords.T[::-1])
+    np.testing.assert_array_equal(got.coords, coords[order])
+    np.testing.assert_allclose(got.sdf, sdf[order], atol=2e-4 if f16 else 0)
+    np.testing.assert_allclose(got.weight, weight[order], atol=2e-4 if f16 else 0)
+    assert {tuple(c) for c in got.free_coords} == {(2, 0, 0), (0, 1, 1)}
+    again = _save(loaded, tmp_path / "again.tsdf", f16=f16)
+    assert again["format_version"] == 2
+    with np.load(tmp_path / "v2.tsdf") as a, np.load(tmp_path / "again.tsdf") as b:
+        for name in ("block_coords", "sdf", "weight", "free_tiles", "free_masks"):
+            np.testing.assert_array_equal(a[name], b[name])
+
+
+def test_free_cells_pack_into_tile_masks():
+    """FREE cells round-trip through tiles and bit masks, in any order, across tiles."""
+    from mcl3d.maps.sparse_cells import cells_to_masks, masks_to_cells
+
+    rng = np.random.default_rng(1)
+    cells = np.unique(rng.integers(0, 40, size=(500, 3)), axis=0).astype(np.int32)
+    tiles, masks = cells_to_masks(cells[rng.permutation(len(cells))])
+    assert masks.shape == (len(tiles), 64) and masks.dtype == np.uint8
+    assert len(tiles) == len(np.unique(cells >> 3, axis=0))
+    back = masks_to_cells(tiles, masks)
+    np.testing.assert_array_equal(back[np.lexsort(back.T[::-1])], cells)
+    one = cells_to_masks(np.array([[9, 0, 2]]))
+    np.testing.assert_array_equal(one[0], [[1, 0, 0]])
+    assert np.unpackbits(one[1])[(1 * 8 + 0) * 8 + 2] == 1 and one[1].sum() == 32
 
 
 def test_existing_output_is_not_overwritten_without_force(ti_runtime, tmp_path):
@@ -133,7 +191,7 @@ def test_other_format_version(saved, tmp_path):
 
     bad = tmp_path / "v99.tsdf"
     _rewrite(saved, bad, change)
-    with pytest.raises(MapError, match=r"format version 99.*reads version 1"):
+    with pytest.raises(MapError, match=r"format version 99.*reads versions 1 and 2"):
         load_map(bad)
 
 
@@ -154,8 +212,8 @@ def test_missing_member_and_not_a_map(saved, tmp_path):
     from mcl3d.maps.map_file import load_map, read_header
 
     bad = tmp_path / "nofree.tsdf"
-    _rewrite(saved, bad, lambda n, a: None if n == "free_coords" else a)
-    with pytest.raises(MapError, match=r"lacks the member.*free_coords"):
+    _rewrite(saved, bad, lambda n, a: None if n == "free_masks" else a)
+    with pytest.raises(MapError, match=r"lacks the member.*free_masks"):
         load_map(bad)
     text = tmp_path / "notes.tsdf"
     text.write_text("hello")

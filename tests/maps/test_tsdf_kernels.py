@@ -1,5 +1,7 @@
 """TSDF kernels against NumPy references on tiny maps: allocation, one ray, queries, state."""
 
+from functools import partial
+
 import numpy as np
 import pytest
 
@@ -20,14 +22,53 @@ def test_allocation_gives_unique_dense_ids(ti_runtime):
     inside = coords[np.all((coords >= 0) & (coords < (4, 3, 2)), axis=1)]
     expected = {tuple(c) for c in inside}
     assert tsdf.n_blocks == len(expected)
-    coarse = tsdf.coarse_numpy()
-    ids = coarse[coarse >= 0]
+    cells, ids = tsdf.coarse_cells()
     assert sorted(ids) == list(range(len(expected)))
     data = tsdf.blocks()
     assert {tuple(c) for c in data.coords} == expected
+    coarse = dict(zip(map(tuple, cells), ids, strict=True))
     for b, c in enumerate(data.coords):
         assert coarse[tuple(c)] == b
     assert (data.weight == 0).all() and np.allclose(data.sdf, tsdf.truncation_m)
+
+
+def test_sparse_index_over_many_tiles(ti_runtime):
+    """Blocks and FREE cells scattered over a grid of 3 x 2 x 2 tiles: tiles are claimed
+    only where a cell is known, and every cell reads back as a dense NumPy grid says."""
+    tsdf = _map(dims=(19, 10, 9), capacity=400)
+    rng = np.random.default_rng(3)
+    dense = np.full((19, 10, 9), -1, np.int64)
+    free = rng.integers(0, (19, 10, 9), size=(60, 3))
+    alloc = rng.integers(0, (19, 10, 9), size=(300, 3))
+    alloc[:, 1] = np.minimum(alloc[:, 1], 7)  # tiles with y >= 8 hold FREE cells at most
+    tsdf.mark_free(free)
+    tsdf.allocate(alloc)
+    dense[tuple(free.T)] = -3
+    data = tsdf.blocks()
+    dense[tuple(data.coords.T)] = np.arange(len(data.coords))
+    assert {tuple(c) for c in data.coords} == {tuple(c) for c in alloc}
+    known = np.argwhere(dense != -1)
+    assert tsdf.n_tiles == len({tuple(c) for c in known >> 3})
+    cells, values = tsdf.coarse_cells()
+    got = np.full_like(dense, -1)
+    got[tuple(cells.T)] = values
+    np.testing.assert_array_equal(got, dense)
+    from mcl3d.maps.sparse_cells import CellLookup
+
+    grid = np.argwhere(np.ones((21, 12, 11), bool)) - 1  # one cell past each face
+    lookup = CellLookup(cells, values, tsdf.coarse_dims)(grid)
+    inside = np.all((grid >= 0) & (grid < (19, 10, 9)), axis=1)
+    np.testing.assert_array_equal(lookup[inside], dense[tuple(grid[inside].T)])
+    assert (lookup[~inside] == -1).all()
+
+
+def test_tile_pool_past_capacity_says_how_many_tiles(ti_runtime):
+    from mcl3d.maps.tsdf import MapGeometry, TsdfMap
+
+    tsdf = TsdfMap(MapGeometry(0.1, 0.3, (0.0, 0.0, 0.0), (40, 8, 8)), 16, capacity_tiles=2)
+    with pytest.raises(MapError, match=r"coarse index needs 5 tiles but its capacity is 2"):
+        tsdf.allocate(np.array([[8 * i, 0, 0] for i in range(5)]))
+    assert tsdf.n_blocks == 2
 
 
 def test_allocation_past_capacity_says_how_many_blocks(ti_runtime):
@@ -36,7 +77,7 @@ def test_allocation_past_capacity_says_how_many_blocks(ti_runtime):
     with pytest.raises(MapError, match=r"needs 5 blocks but its capacity is 3"):
         tsdf.allocate(coords)
     assert tsdf.n_blocks == 3
-    assert (tsdf.coarse_numpy() == -2).sum() == 2  # OVERFLOW cells
+    assert (tsdf.coarse_cells()[1] == -2).sum() == 2  # OVERFLOW cells
 
 
 def _grid(tsdf):
@@ -168,7 +209,7 @@ def test_fusion_of_a_ray_and_a_scan_line_matches_numpy(ti_runtime):
     alpha = np.zeros(1, np.float32)
     rays = _ray_buffers(1)
     tsdf_fusion.scan_allocate(tsdf, pts, np.zeros_like(pts), alpha, 1, q, t, q, t, 0.1, 100.0,
-                              0.0, behind, False, *rays, 64, 1)
+                              0.0, behind, False, *rays, 64, 1, True)
     tsdf.init_new_blocks(0, tsdf.requested_blocks)
     tsdf_fusion.scan_fuse(tsdf, *rays, alpha, 1, t, t, 0.0, behind, True, sigma, 64, 1)
     band, free_hits, blocks, free_blocks = _ray_reference(origin, point, tsdf, behind, sigma)
@@ -190,6 +231,35 @@ def test_fusion_of_a_ray_and_a_scan_line_matches_numpy(ti_runtime):
             assert w == free_hits[g]
             assert 0 < d <= tsdf.truncation_m + 1e-6
     _check_scan_line(tsdf)
+
+
+def test_carving_claims_the_tiles_it_crosses(ti_runtime):
+    """A 21 m ray over a map four tiles long: the allocation pass claims the tiles of the
+    band and of every block the carving walk crosses, so carving marks the same FREE
+    blocks as the NumPy walk, and no other tile exists."""
+    import taichi as ti
+
+    from mcl3d.kernels import tsdf_fusion
+
+    tsdf = _map(dims=(30, 4, 3), capacity=64, voxel=0.1, trunc=0.3, origin=(-0.8, -0.8, -0.8))
+    tsdf.as_sums = True
+    origin = np.array([0.013, -0.021, 0.017])
+    point = np.array([20.31, 1.17, 0.53])
+    pts = (point - origin).astype(np.float32)[None]
+    q, t = ti.math.vec4(0, 0, 0, 1), ti.math.vec3(*origin)
+    alpha = np.zeros(1, np.float32)
+    rays = _ray_buffers(1)
+    tsdf.relaunch_until_placed(lambda: tsdf_fusion.scan_allocate(
+        tsdf, pts, np.zeros_like(pts), alpha, 1, q, t, q, t, 0.1, 100.0, 0.0, 0.2, False,
+        *rays, 64, 1, True))
+    tsdf.init_new_blocks(0, tsdf.requested_blocks)
+    tsdf_fusion.scan_fuse(tsdf, *rays, alpha, 1, t, t, 0.0, 0.2, True, 0.1, 64, 1)
+    _, _, blocks, free_blocks = _ray_reference(origin, point, tsdf, 0.2, 0.1)
+    data = tsdf.blocks()
+    assert {tuple(c) for c in data.coords} == blocks
+    assert {tuple(c) for c in data.free_coords} == free_blocks
+    assert {c[0] >> 3 for c in free_blocks} == {0, 1, 2, 3}
+    assert tsdf.n_tiles == len({tuple(np.asarray(c) >> 3) for c in blocks | free_blocks})
 
 
 def _check_scan_line(tsdf):
@@ -226,7 +296,8 @@ def _check_scan_line(tsdf):
         all_hits = free_hits
         tsdf.clear()
         tsdf.as_sums = True
-        tsdf_fusion.scan_allocate(tsdf, *args, spacing, behind, False, *rays, run_length, threads)
+        tsdf.relaunch_until_placed(partial(tsdf_fusion.scan_allocate, tsdf, *args, spacing,
+                                           behind, False, *rays, run_length, threads, True))
         tsdf.init_new_blocks(0, tsdf.requested_blocks)
         tsdf_fusion.scan_fuse(tsdf, *rays, alpha, len(pts), t, t, spacing, behind, True,
                               sigma, run_length, threads)
