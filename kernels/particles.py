@@ -123,3 +123,19 @@ def add_scaled(x: ti.template(), y: ti.template(), n: ti.i32, scale: ti.f32):
     """x += scale * y over the first n entries (re-tempering a likelihood increment)."""
     for i in range(n):
         x[i] += scale * y[i]
+
+
+@ti.kernel
+def apply_factors(w: ti.template(), factor: ti.template(), n: ti.i32):
+    """w *= factor over the first n entries (mode-preserving resampling weights)."""
+    for i in range(n):
+        w[i] *= factor[i]
+
+
+@ti.kernel
+def log_inverse_parent_factor(factor: ti.template(), parent: ti.template(), n_out: ti.i32,
+                              log_w: ti.template()):
+    """log_w[k] = -log(factor[parent[k]]): each copy keeps its parent's share of the
+    posterior after resampling by weight * factor."""
+    for k in range(n_out):
+        log_w[k] = -ti.log(factor[parent[k]])

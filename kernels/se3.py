@@ -118,6 +118,18 @@ def so3_left_jacobian_apply(w: vec3, v: vec3) -> vec3:
 
 
 @ti.func
+def so3_left_jacobian_inv_apply(w: vec3, v: vec3) -> vec3:
+    """J_l(w)^-1 v = v - (w × v) / 2 + (1/θ² - (1 + cos θ) / (2 θ sin θ)) (w × (w × v))."""
+    theta2 = w.dot(w)
+    c = 1.0 / 12.0 + theta2 / 720.0
+    if theta2 > 1e-6:
+        theta = ti.sqrt(theta2)
+        c = 1.0 / theta2 - (1.0 + ti.cos(theta)) / (2.0 * theta * ti.sin(theta))
+    wv = w.cross(v)
+    return v - 0.5 * wv + c * w.cross(wv)
+
+
+@ti.func
 def pose_retract(q: vec4, t: vec3, xi_w: vec3, xi_v: vec3):
     """T exp(xi): right perturbation by a rotation-first tangent (wx, wy, wz, vx, vy, vz)."""
     dq = quat_exp(xi_w)

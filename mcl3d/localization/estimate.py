@@ -140,18 +140,27 @@ def mode_floor(labels: np.ndarray, weights: np.ndarray, share: float, min_weight
     w = w / w.sum()
     k = int(labels.max()) + 1 if len(labels) else 0
     cluster_w = np.bincount(labels[labels >= 0], weights=w[labels >= 0], minlength=k)
+    table, rivals = mode_floor_table(cluster_w, share, min_weight, max_modes)
+    return ModeFloor(table[labels + 1], rivals)
+
+
+def mode_floor_table(cluster_w: np.ndarray, share: float, min_weight: float, max_modes: int
+                     ) -> tuple[np.ndarray, int]:
+    """`mode_floor` from the clusters' shares of the weight: (factor per label + 1, entry 0
+    for the particles of no cluster, rivals), what the device applies to every particle."""
+    cluster_w = np.asarray(cluster_w, dtype=np.float64)
     order = [c for c in np.argsort(-cluster_w, kind="stable") if cluster_w[c] >= min_weight]
     kept = order[:max_modes]
-    factors = np.ones(len(w))
+    table = np.ones(len(cluster_w) + 1)
     if len(kept) < 2:
-        return ModeFloor(factors, 0)
+        return table, 0
     floored = [c for c in kept if cluster_w[c] < share]
     if floored:  # they get `share` each; everything else shares the rest by weight
         others_w = 1.0 - cluster_w[floored].sum()
-        factors[:] = (1.0 - share * len(floored)) / others_w
+        table[:] = (1.0 - share * len(floored)) / others_w
         for c in floored:
-            factors[labels == c] = share / cluster_w[c]
-    return ModeFloor(factors, len(kept) - 1)
+            table[c + 1] = share / cluster_w[c]
+    return table, len(kept) - 1
 
 
 def kld_sample_count(occupied_bins: int, epsilon: float, delta: float, n_min: int,
@@ -205,10 +214,19 @@ def estimate_pose(cloud: WeightedParticles, cfg: EstimateConfig, rng: np.random.
     estimate, dominant when it passes the convergence test."""
     pos, quat, w = cloud.positions, cloud.quats_xyzw, cloud.weights
     best = int(np.argmax(w))
-    T_best = geometry.se3_from_tq(pos[best], quat[best])
     k = min(len(w), cfg.samples)
     idx = systematic_sample(w, k, rng)
-    hyps = cluster_hypotheses(pos[idx], quat[idx], np.full(k, 1.0 / k),
+    return estimate_from_sample(pos[idx], quat[idx], geometry.se3_from_tq(pos[best], quat[best]),
+                                float(w @ cloud.match), float(w @ cloud.mean_ll), cfg)
+
+
+def estimate_from_sample(positions: np.ndarray, quats_xyzw: np.ndarray, T_best: np.ndarray,
+                         match_ratio: float, mean_log_likelihood: float, cfg: EstimateConfig
+                         ) -> PoseEstimate:
+    """`estimate_pose` from particles already drawn by weight (equal weights) and the
+    cloud's weighted statistics: what the localizer computes on the device."""
+    k = len(positions)
+    hyps = cluster_hypotheses(positions, quats_xyzw, np.full(k, 1.0 / k),
                               ClusterParams(cfg.cluster_radius_m, cfg.cluster_angle_rad,
                                             cfg.max_hypotheses))
     h0 = hyps[0]
@@ -219,7 +237,7 @@ def estimate_pose(cloud: WeightedParticles, cfg: EstimateConfig, rng: np.random.
         T_map_lidar=h0.T_map_lidar, T_best=T_best, covariance=h0.covariance,
         hypotheses=strong or hyps[:1], clusters=hyps,
         dominant=h0.weight >= cfg.converged_weight and compact,
-        match_ratio=float(w @ cloud.match), mean_log_likelihood=float(w @ cloud.mean_ll))
+        match_ratio=float(match_ratio), mean_log_likelihood=float(mean_log_likelihood))
 
 
 def with_mean_of_all(estimate: PoseEstimate, cloud: WeightedParticles) -> PoseEstimate:

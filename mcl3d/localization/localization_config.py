@@ -98,7 +98,8 @@ class ResampleConfig(Section):
 class EstimateConfig(Section):
     cluster_radius_m: float = Field(1.0, gt=0.0)
     cluster_angle_deg: float = Field(28.64788975654116, gt=0.0)
-    max_hypotheses: int = Field(3, ge=1)
+    max_hypotheses: int = Field(3, ge=1, le=8, description="clusters reported; a global "
+                                "search protects up to twice as many (16 on the device)")
     samples: int = Field(5000, ge=100, description="weighted subsample used for clustering")
     converged_weight: float = Field(0.8, gt=0.0, le=1.0,
                                     description="dominant cluster weight to be converged")

@@ -1,7 +1,8 @@
 """6-DoF Monte Carlo localization in a TSDF: `Localizer(tsdf, config).step(...)`.
 
 One step reads as the algorithm: predict (motion update, kernel) -> weigh (scan likelihood
-and weights, kernels) -> estimate (the dominant cluster of a weighted subsample, host) ->
+and weights, kernels) -> estimate (the dominant cluster of a weighted subsample drawn on the
+device, host; while tracking no per-particle array leaves the device, see `particle_stats`) ->
 loss check -> resample (systematic, kernels, when the ESS is low; optionally KLD-sampling;
 mode-preserving during a global search, see `search`) -> recover (re-seed part of the cloud
 when the filter has lost track, see `recovery`).
@@ -10,6 +11,7 @@ when the filter has lost track, see `recovery`).
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import numpy as np
 import taichi as ti
@@ -18,16 +20,18 @@ from mcl3d.core import geometry
 from mcl3d.core.errors import InputError
 from mcl3d.kernels import motion
 from mcl3d.kernels import particles as kp
-from mcl3d.localization.estimate import (
-    PoseEstimate,
-    WeightedParticles,
-    estimate_pose,
-    with_mean_of_all,
-)
+from mcl3d.localization.estimate import PoseEstimate, WeightedParticles, estimate_from_sample
 from mcl3d.localization.evidence import PlaceEvidence, place_labels, rival_gap
 from mcl3d.localization.initialization import FreeCells, free_cells
 from mcl3d.localization.localization_config import LocalizerConfig
 from mcl3d.localization.particle_set import ParticleSet
+from mcl3d.localization.particle_stats import (
+    CloudStats,
+    MeanOfAll,
+    ParticleSampler,
+    cloud_stats,
+    evenly,
+)
 from mcl3d.localization.random_streams import (
     ESTIMATE_SAMPLE_STREAM,
     EVIDENCE_SAMPLE_STREAM,
@@ -78,8 +82,11 @@ class Localizer:
         self.imu_roll_pitch = imu_roll_pitch
         self.step_index = 0
         self.ever_converged = False
+        self.shown_particles = 0  # particles of each update to keep in last_cloud (a view)
         self.last_cloud: WeightedParticles | None = None  # the last update's, to show
-        self.search = GlobalSearch(config)
+        self.mean_of_all = MeanOfAll(config.particles)
+        self.sampler = ParticleSampler(config.estimate.samples)
+        self.search = GlobalSearch(config, self.sampler)
         self.recovery = Recovery(config.recovery)
         self.evidence = PlaceEvidence()
         self._places: np.ndarray | None = None  # place label per particle, this update
@@ -179,16 +186,17 @@ class Localizer:
         timer.lap("likelihood")
         n = self.particles.n
         weights = compute_weights(self.particles)
+        stats = cloud_stats(self.particles, weights.total)
         timer.lap("weights")
-        cloud = self.particles.weighted_host(weights.total)
+        cloud = self._search_cloud(weights, coarse_sigma)
         self._gather_evidence(cloud, len(pts), coarse_sigma)
-        estimate, state = self._estimate(cloud)
+        estimate, state = self._estimate(cloud, stats, weights)
         timer.lap("estimate")
         state, reseed = self._check_loss(estimate, state)
         timer.lap("recovery")
         resampled = bool(reseed) or weights.ess < self.cfg.resample.ess_threshold * n
         if resampled:
-            self._resample(cloud, weights, reseed, counter)
+            self._resample(weights, reseed, counter)
         timer.lap("resample")
         if reseed:
             self._recover(reseed, estimate.T_map_lidar)
@@ -199,7 +207,7 @@ class Localizer:
             ess=float(weights.ess), n_particles=n, match_ratio=estimate.match_ratio,
             mean_log_likelihood=estimate.mean_log_likelihood, n_points=len(pts),
             resampled=resampled, reseeded=reseed, places=self.search.live_places,
-            best_match_ratio=float(cloud.match.max()),
+            best_match_ratio=stats.best_match_ratio,
             timings_ms=timer.ms)
 
     def motion_std(self, T_prev_curr: np.ndarray, extra_rot: float = 0.0,
@@ -249,7 +257,15 @@ class Localizer:
         if min_ess > 0 and not self.ever_converged:
             anneal(self.particles, s.increment_scale(len(pts)), min_ess)
 
-    def _gather_evidence(self, cloud: WeightedParticles, n_points: int,
+    def _search_cloud(self, weights: Weights, coarse_sigma: float | None
+                      ) -> WeightedParticles | None:
+        """Every particle on the host, only while a global search gathers the places'
+        evidence (`evidence`, host); None otherwise."""
+        if not self.ever_converged and coarse_sigma is None:
+            return self.particles.weighted_host(weights.total)
+        return None
+
+    def _gather_evidence(self, cloud: WeightedParticles | None, n_points: int,
                          coarse_sigma: float | None) -> None:
         """Each place's evidence, while searching (see `evidence`); the coarse model is a
         search heuristic, not evidence."""
@@ -264,18 +280,25 @@ class Localizer:
                           host_rng(self.seed, self.step_index, EVIDENCE_SAMPLE_STREAM),
                           r.place_margin_nats)
 
-    def _estimate(self, cloud: WeightedParticles) -> tuple[PoseEstimate, FilterState]:
+    def _estimate(self, cloud: WeightedParticles | None, stats: CloudStats, weights: Weights
+                  ) -> tuple[PoseEstimate, FilterState]:
         """The dominant cluster and the filter's state (a global search converges only
         after the coarse phase, with no rival mode, after motion)."""
-        estimate = estimate_pose(cloud, self.cfg.estimate,
-                                 host_rng(self.seed, self.step_index, ESTIMATE_SAMPLE_STREAM))
-        self.last_cloud = cloud
-        if self.cfg.estimate.mean == "all":
-            estimate = with_mean_of_all(estimate, cloud)
-        self.search.update_modes(cloud, estimate.clusters,
+        e, p = self.cfg.estimate, self.particles
+        u0 = host_rng(self.seed, self.step_index, ESTIMATE_SAMPLE_STREAM).random()
+        pos, quat = self.sampler.by_weight(p, weights.total, min(p.n, e.samples), u0)
+        estimate = estimate_from_sample(pos, quat, stats.T_best, stats.match_ratio,
+                                        stats.mean_log_likelihood, e)
+        if self.shown_particles > 0:
+            shown = min(self.shown_particles, self.sampler.capacity)
+            self.last_cloud = self.sampler.shown(p, weights.total, evenly(p.n, shown))
+        if self.cfg.estimate.mean == "all":  # the clusters (convergence test) stay
+            T_mean, covariance = self.mean_of_all(p)
+            estimate = replace(estimate, T_map_lidar=T_mean, covariance=covariance)
+        self.search.update_modes(p, weights.total, estimate.clusters,
                                  host_rng(self.seed, self.step_index, MODE_SAMPLE_STREAM),
-                                 None if self._places is None else (self._places,
-                                                                    self.evidence))
+                                 None if self._places is None else (
+                                     self._places, cloud.weights, self.evidence))
         rival = self._rival_explains_scans(cloud, estimate)
         converged = estimate.dominant and not rival
         if self.search.active:
@@ -316,19 +339,23 @@ class Localizer:
             self._upright = (float(roll), float(pitch))
         return state, reseed
 
-    def _resample(self, cloud: WeightedParticles, weights: Weights, reseed: Reseed,
-                  counter: int) -> None:
-        """Systematic resampling, KLD-sized when asked, mode-preserving during a search."""
-        cfg = self.cfg
-        n_out = self.particles.n
+    def _resample(self, weights: Weights, reseed: Reseed, counter: int) -> None:
+        """Systematic resampling, KLD-sized when asked, mode-preserving during a search.
+        The places' evidence follows the parents only while it is still to be read (it is
+        all zeros before the first accurate scan, and unused once converged until the next
+        initialization resets it)."""
+        cfg, p = self.cfg, self.particles
+        n_out = p.n
         if cfg.resample.kld:
-            n_out = kld_count(cloud, cfg.resample, cfg.estimate.samples, self.particles.capacity,
-                              host_rng(self.seed, self.step_index, KLD_SAMPLE_STREAM))
-        factors = None if reseed else self.search.mode_factors
+            u0 = host_rng(self.seed, self.step_index, KLD_SAMPLE_STREAM).random()
+            pos, quat = self.sampler.by_weight(p, weights.total,
+                                               min(p.n, cfg.estimate.samples), u0)
+            n_out = kld_count(pos, quat, cfg.resample, p.capacity)
+        floored = self.search.floored and not reseed
         u0 = float(host_rng(self.seed, counter, RESAMPLE_OFFSET_STREAM).random())
-        resample(self.particles, n_out, weights, u0, factors, cloud,
-                 keep_posterior=not self.search.exploring)
-        self.evidence.inherit(self.particles.parent.to_numpy()[:n_out])
+        resample(p, n_out, weights, u0, floored, keep_posterior=not self.search.exploring)
+        if self.evidence.scans and not self.ever_converged:
+            self.evidence.inherit(p.parent.to_numpy()[:n_out])
 
     def _recover(self, how: Reseed, T_estimate: np.ndarray) -> None:
         """Re-seed: around the estimate (clipped into the map), or over the free space."""

@@ -18,8 +18,8 @@ from mcl3d.kernels.resample import SCAN_BLOCK
 from mcl3d.localization.estimate import WeightedParticles
 
 MAX_PARTICLES = 8_000_000  # one parallel loop must stay under Vulkan's 8M-iteration limit
-# two pose buffers + log_w, w, cdf, parent, match, ll + the locality key and visiting order
-BYTES_PER_PARTICLE = 2 * (12 + 16) + 6 * 4 + 2 * 4
+# two pose buffers + log_w, w, cdf, parent, match, ll, factor, label + locality key and order
+BYTES_PER_PARTICLE = 2 * (12 + 16) + 8 * 4 + 2 * 4
 
 
 def available_memory_bytes() -> int | None:
@@ -67,6 +67,8 @@ class ParticleSet:
         self.w = ti.field(ti.f32, shape=c)
         self.cdf = ti.field(ti.f32, shape=c)
         self.parent = ti.field(ti.i32, shape=c)
+        self.factor = ti.field(ti.f32, shape=c)  # mode-preserving resampling factor
+        self.label = ti.field(ti.i32, shape=c)  # cluster of a global search's mode floor
         self.block_sums = ti.field(ti.f32, shape=(c + SCAN_BLOCK - 1) // SCAN_BLOCK)
         self.partial_sums = ti.Vector.field(2, ti.f32, shape=(c + SCAN_BLOCK - 1) // SCAN_BLOCK)
         self.sums = ti.field(ti.f32, shape=2)

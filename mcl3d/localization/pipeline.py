@@ -208,6 +208,7 @@ class _ScanLoop:
                  out: LocalizeResult, total: int, view: LocalizeView | None, on_progress):
         self.loc, self.source, self.cfg, self.out = loc, source, cfg, out
         self.total, self.view, self.on_progress = total, view, on_progress
+        loc.shown_particles = cfg.result_particles if view is not None else 0
         self.prev_ns: int | None = None
         self.best_match = 0.0
         self.checkpoint: Checkpointer | None = None  # writes the outputs so far now and then

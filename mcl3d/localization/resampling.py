@@ -3,7 +3,9 @@
 Weights are exp(log_w - max) with their sum and sum of squares (ESS); resampling draws
 `n_out` parents along the weights' CDF with one random offset, gathers them into the back
 buffers and swaps. Mode-preserving resampling draws along weight * factor instead and gives
-each copy the log-weight -log(factor) of its parent, so the posterior is unchanged.
+each copy the log-weight -log(factor) of its parent, so the posterior is unchanged. The
+factors are set on the device (`particle_stats.ClusterLabels`); the weights, the parents and
+the restored log-weights stay there.
 """
 
 from __future__ import annotations
@@ -14,8 +16,9 @@ import numpy as np
 
 from mcl3d.core import geometry
 from mcl3d.kernels import resample as kr
-from mcl3d.kernels.particles import gather
-from mcl3d.localization.estimate import WeightedParticles, kld_sample_count, systematic_sample
+from mcl3d.kernels.particle_stats import weighted_partials
+from mcl3d.kernels.particles import apply_factors, gather, log_inverse_parent_factor
+from mcl3d.localization.estimate import kld_sample_count
 from mcl3d.localization.localization_config import ResampleConfig
 from mcl3d.localization.particle_set import ParticleSet
 
@@ -38,31 +41,26 @@ def compute_weights(p: ParticleSet) -> Weights:
     return Weights(s1, s1 * s1 / max(s2, MIN_WEIGHT_SQUARES))
 
 
-def kld_count(cloud: WeightedParticles, cfg: ResampleConfig, samples: int, capacity: int,
-              rng: np.random.Generator) -> int:
-    """Particles to draw by KLD-sampling: bins of x, y, z and yaw of a weighted subsample."""
-    pos, quat, w = cloud.positions, cloud.quats_xyzw, cloud.weights
-    k = min(len(w), samples)
-    idx = systematic_sample(w, k, rng)
-    R = geometry.quat_to_rot(quat[idx])
+def kld_count(positions: np.ndarray, quats_xyzw: np.ndarray, cfg: ResampleConfig,
+              capacity: int) -> int:
+    """Particles to draw by KLD-sampling: the bins of x, y, z and yaw occupied by a sample
+    of the particles drawn by weight."""
+    R = geometry.quat_to_rot(quats_xyzw)
     yaw = np.arctan2(R[:, 1, 0], R[:, 0, 0])
-    keys = np.column_stack([np.floor(pos[idx] / cfg.kld_bin_m),
+    keys = np.column_stack([np.floor(positions / cfg.kld_bin_m),
                             np.floor(yaw / cfg.kld_bin_rad)]).astype(np.int64)
     bins = len(np.unique(keys, axis=0))
     lo = min(cfg.min_particles, capacity)
     return kld_sample_count(bins, cfg.kld_epsilon, cfg.kld_delta, lo, capacity)
 
 
-def resample(p: ParticleSet, n_out: int, weights: Weights, u0: float,
-             mode_factors: np.ndarray | None = None, cloud: WeightedParticles | None = None,
+def resample(p: ParticleSet, n_out: int, weights: Weights, u0: float, floored: bool = False,
              keep_posterior: bool = True) -> None:
-    """Draw `n_out` particles (offset `u0` in [0, 1)) by weight, or by weight * factor when
-    `mode_factors` are given (then `cloud` holds the weights, and `keep_posterior` gives
-    each copy its parent's -log(factor))."""
+    """Draw `n_out` particles (offset `u0` in [0, 1)) by weight, or by weight * `p.factor`
+    when `floored` (mode-preserving); `keep_posterior` then gives each copy its parent's
+    -log(factor)."""
     n = p.n
-    total = weights.total
-    if mode_factors is not None:
-        total = _upload_floored_weights(p, cloud.weights, mode_factors)
+    total = _floored_weights(p) if floored else weights.total
     kr.scan_blocks(p.w, n, p.cdf, p.block_sums)
     kr.scan_block_sums(p.block_sums, (n + kr.SCAN_BLOCK - 1) // kr.SCAN_BLOCK)
     kr.add_block_offsets(p.cdf, n, p.block_sums, total)
@@ -70,22 +68,13 @@ def resample(p: ParticleSet, n_out: int, weights: Weights, u0: float,
     gather(p.pos, p.quat, p.parent, n_out, p.pos_back, p.quat_back, p.log_w)
     p.swap()
     p.n = n_out
-    if mode_factors is not None and keep_posterior:
-        _restore_posterior(p, mode_factors, n_out)
+    if floored and keep_posterior:
+        log_inverse_parent_factor(p.factor, p.parent, n_out, p.log_w)
 
 
-def _upload_floored_weights(p: ParticleSet, w: np.ndarray, factors: np.ndarray) -> float:
+def _floored_weights(p: ParticleSet) -> float:
     """Resampling weights w * factor (mode-preserving) into p.w; returns their sum."""
-    host = np.zeros(p.capacity, np.float32)
-    host[:len(w)] = w * factors
-    p.w.from_numpy(host)
-    return float(host.sum(dtype=np.float64))
-
-
-def _restore_posterior(p: ParticleSet, factors: np.ndarray, n_out: int) -> None:
-    """Each copy carries log(weight / resampling weight) of its parent: the floored modes
-    keep their particles but not more than their share of the posterior."""
-    parent = p.parent.to_numpy()[:n_out]
-    log_w = np.zeros(p.capacity, np.float32)
-    log_w[:n_out] = -np.log(factors[parent])
-    p.log_w.from_numpy(log_w)
+    weighted_partials(p.w, p.factor, p.factor, p.n, p.partial_sums)
+    kr.sum_partials(p.partial_sums, p.n, p.sums)
+    apply_factors(p.w, p.factor, p.n)  # the same f32 products, summed in the same order
+    return float(p.sums[0])

@@ -17,14 +17,13 @@ from mcl3d.kernels.particles import add_scaled
 from mcl3d.localization.estimate import (
     ClusterParams,
     Hypothesis,
-    WeightedParticles,
     cluster_hypotheses,
-    label_particles,
-    mode_floor,
+    mode_floor_table,
 )
 from mcl3d.localization.evidence import PlaceEvidence, place_floor
 from mcl3d.localization.localization_config import LocalizerConfig
 from mcl3d.localization.particle_set import ParticleSet
+from mcl3d.localization.particle_stats import ClusterLabels, ParticleSampler, tempered_ess
 
 COARSE_MIN_WEIGHT = 1e-12  # the coarse phase's mode floor protects any cluster it finds
 ANNEAL_BISECTIONS = 12  # steps of the search for the tempering factor beta
@@ -33,14 +32,16 @@ ANNEAL_BISECTIONS = 12  # steps of the search for the tempering factor beta
 class GlobalSearch:
     """The state of a global search since the last global (re-)initialization."""
 
-    def __init__(self, cfg: LocalizerConfig):
+    def __init__(self, cfg: LocalizerConfig, sampler: ParticleSampler):
         self.cfg = cfg
+        self.sampler = sampler  # device sample fields shared with the estimate
+        self.labels = ClusterLabels(cfg.particles)
         self.active = False
         self.scans = 0  # scans scored since the search began
         self.moved = np.zeros(2)  # m, rad since the search began
         self.dominant_run = 0  # scans in a row with one dominant cluster
         self.exploring = False  # this update is a coarse or grace scan (see update_modes)
-        self.mode_factors: np.ndarray | None = None  # mode-preserving resampling factors
+        self.floored = False  # the particle set's `factor` holds mode-preserving factors
         self.rivals = 0  # protected clusters besides the dominant one
         self.live_places = 0  # places whose evidence the scans have not ruled out
 
@@ -73,27 +74,28 @@ class GlobalSearch:
         if self.active:
             self.scans += 1
 
-    def update_modes(self, cloud: WeightedParticles, hyps: list[Hypothesis],
+    def update_modes(self, p: ParticleSet, total_weight: float, hyps: list[Hypothesis],
                      rng: np.random.Generator,
-                     evidence: tuple[np.ndarray, PlaceEvidence] | None = None) -> None:
-        """Mode-preserving resampling factors (`mode_floor`): the clusters are those of the
-        weighted sample plus those of a uniform sample of the particles (a mode that holds
-        many particles but little weight), merged when closer than two cluster radii. During
-        the coarse phase the model is a deliberately blurred search heuristic, not evidence
-        to accumulate: the heaviest clusters keep their floor whatever their weight, and the
-        copies start with equal weights (tempering), so the accurate model decides between
-        the modes from the end of the coarse phase on. With `evidence` (each particle's place
-        and evidence), every place the scans have not ruled out also keeps a floor of
+                     evidence: tuple[np.ndarray, np.ndarray, PlaceEvidence] | None = None
+                     ) -> None:
+        """Mode-preserving resampling factors (`mode_floor`) into `p.factor`: the clusters
+        are those of the weighted sample plus those of a uniform sample of the particles (a
+        mode that holds many particles but little weight), merged when closer than two
+        cluster radii; every particle is labelled on the device. During the coarse phase the
+        model is a deliberately blurred search heuristic, not evidence to accumulate: the
+        heaviest clusters keep their floor whatever their weight, and the copies start with
+        equal weights (tempering), so the accurate model decides between the modes from the
+        end of the coarse phase on. With `evidence` (each particle's place and weight, and
+        the evidence), every place the scans have not ruled out also keeps a floor of
         particles (`evidence.place_floor`), however many look-alike places there are."""
         e, r = self.cfg.estimate, self.cfg.resample
-        self.mode_factors, self.rivals, self.live_places = None, 0, 0
+        self.floored, self.rivals, self.live_places = False, 0, 0
         if not self.active or r.mode_share <= 0:
             return
-        pos, quat, w = cloud.positions, cloud.quats_xyzw, cloud.weights
-        k = min(len(w), e.samples)
-        idx = rng.choice(len(w), k, replace=False)
+        k = min(p.n, e.samples)
+        pos, quat = self.sampler.at(p, rng.choice(p.n, k, replace=False))
         params = ClusterParams(e.cluster_radius_m, e.cluster_angle_rad, e.max_hypotheses)
-        populous = cluster_hypotheses(pos[idx], quat[idx], np.full(k, 1.0 / k), params)
+        populous = cluster_hypotheses(pos, quat, np.full(k, 1.0 / k), params)
         centres: list[np.ndarray] = []
         for h in hyps + populous:
             T = h.T_map_lidar
@@ -101,21 +103,22 @@ class GlobalSearch:
                    or geometry.rotation_angle(C[:3, :3].T @ T[:3, :3])
                    > 2 * e.cluster_angle_rad for C in centres):
                 centres.append(T)
-        labels = label_particles(pos, quat, centres, e.cluster_radius_m, e.cluster_angle_rad)
-        floor = mode_floor(labels, w, r.mode_share,
-                           COARSE_MIN_WEIGHT if self.exploring else r.mode_min_weight,
-                           e.max_hypotheses)
-        self.rivals = floor.rivals
-        if floor.rivals:
-            self.mode_factors = floor.factors
+        cluster_w = self.labels.weights(p, centres, e.cluster_radius_m, e.cluster_angle_rad,
+                                        total_weight)
+        table, self.rivals = mode_floor_table(
+            cluster_w, r.mode_share, COARSE_MIN_WEIGHT if self.exploring else r.mode_min_weight,
+            e.max_hypotheses)
+        place_factors = None
         if evidence is not None and r.place_min_particles > 0:
-            places, ev = evidence
+            places, weights, ev = evidence
             margin = max(r.place_margin_nats, ev.noise_margin(int(places.max()) + 1))
-            factors, self.live_places = place_floor(places, w, ev.log_l, margin,
+            factors, self.live_places = place_floor(places, weights, ev.log_l, margin,
                                                     r.place_min_particles)
             if self.live_places >= 2:
-                self.mode_factors = factors if self.mode_factors is None else np.maximum(
-                    self.mode_factors, factors)
+                place_factors = factors
+        if self.rivals or place_factors is not None:
+            self.labels.apply(p, table, place_factors)
+            self.floored = True
 
     def converged(self, dominant: bool) -> bool:
         """Whether one cluster dominated long enough, after the coarse phase, with no rival
@@ -130,23 +133,15 @@ class GlobalSearch:
 
 def anneal(p: ParticleSet, scale: float, min_ess_share: float) -> float:
     """Largest beta <= 1 with ESS(log_w_prev + beta * increment) >= min_ess_share * N; the
-    increment (scale * per-point mean ll) already added is scaled down to beta times itself."""
+    increment (scale * per-point mean ll) already added is scaled down to beta times itself.
+    Each candidate's ESS is a reduction on the device (two numbers come back)."""
     n = p.n
-    log_w = p.log_w.to_numpy()[:n].astype(np.float64)
-    inc = scale * p.ll_mean.to_numpy()[:n].astype(np.float64)
-    prev = log_w - inc
     target = min_ess_share * n
-
-    def ess(beta: float) -> float:
-        x = prev + beta * inc
-        w = np.exp(x - x.max())
-        return w.sum() ** 2 / (w @ w)
-
-    if ess(1.0) >= target:
+    if tempered_ess(p, 0.0) >= target:
         return 1.0
     lo, hi = 0.0, 1.0
     for _ in range(ANNEAL_BISECTIONS):
         mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if ess(mid) >= target else (lo, mid)
+        lo, hi = (mid, hi) if tempered_ess(p, (mid - 1.0) * scale) >= target else (lo, mid)
     add_scaled(p.log_w, p.ll_mean, n, float((lo - 1.0) * scale))
     return lo

@@ -14,6 +14,7 @@ import numpy as np
 import taichi as ti
 
 from mcl3d.core import runtime
+from mcl3d.kernels import counting_sort as ks
 from mcl3d.kernels import likelihood as kl
 from mcl3d.kernels import paper_likelihood as kpl
 from mcl3d.localization import sensor_model
@@ -47,7 +48,8 @@ class ScanWeigher:
         self._points_host = np.zeros((cfg.points, 3), np.float32)
         self._keys = ti.field(ti.i32, shape=capacity)
         self._order = ti.field(ti.i32, shape=capacity)
-        self._order_host = np.zeros(capacity, np.int32)
+        self._key_starts = ti.field(ti.i32, shape=1 << (3 * kl.KEY_BITS))
+        self._key_blocks = ti.field(ti.i32, shape=(1 << (3 * kl.KEY_BITS)) // ks.SCAN_BLOCK + 1)
         self._table = ti.field(ti.f32, shape=kl.N_CODES)
         self._coarse_table = ti.field(ti.f32, shape=kl.COARSE_BINS + 2)
         self._table_sigma: float | None = None
@@ -94,11 +96,10 @@ class ScanWeigher:
 
     def _sort_by_pose_cell(self, p: ParticleSet, cell_m: float) -> None:
         """Visit the particles sorted by pose cell (a point 5 m away moves about a voxel
-        from one cell to the next) so that consecutive ones read the same map blocks."""
+        from one cell to the next) so that consecutive ones read the same map blocks; a
+        counting sort on the device (the order within a cell does not change any result)."""
         kl.locality_keys(p.pos, p.quat, p.n, cell_m, cell_m / LOCALITY_RANGE_M, self._keys)
-        keys = self._keys.to_numpy()[:p.n].astype(np.uint16)
-        self._order_host[:p.n] = np.argsort(keys, kind="stable")
-        self._order.from_numpy(self._order_host)
+        ks.sort_by_key(self._keys, p.n, self._key_starts, self._key_blocks, self._order)
 
     def scan_likelihood(self, p: ParticleSet, n_points: int, cache_block: bool) -> None:
         """Adds the tempered log-likelihood of the uploaded scan to every log-weight."""
