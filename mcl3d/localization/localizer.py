@@ -17,7 +17,7 @@ import numpy as np
 import taichi as ti
 
 from mcl3d.core import geometry
-from mcl3d.core.errors import InputError
+from mcl3d.core.errors import InputError, MapError
 from mcl3d.kernels import motion
 from mcl3d.kernels import particles as kp
 from mcl3d.localization.estimate import PoseEstimate, WeightedParticles, estimate_from_sample
@@ -91,7 +91,7 @@ class Localizer:
         self.evidence = PlaceEvidence()
         self._places: np.ndarray | None = None  # place label per particle, this update
         self.weigher = ScanWeigher(tsdf, config.sensor, config.particles)
-        self._free: FreeCells | None = None
+        self._free: FreeCells | bool | None = None  # False: the map has no candidates
         self._init_step = 0  # step_index of the last (re-)initialization
         self._upright: tuple[float, float] | None = None  # roll, pitch when last converged
 
@@ -104,6 +104,17 @@ class Localizer:
         if self._free is None:
             self._free = free_cells(self.tsdf, self.cfg.init)
         return self._free
+
+    def _can_seed_globally(self) -> bool:
+        """Whether the map has global candidates: one too large for them (a city-sized map)
+        or without observed free space is re-seeded around the estimate instead, and the run
+        goes on (the same MapError stops a run that starts globally, before any work)."""
+        if self._free is None:
+            try:
+                self.free_space()
+            except MapError:
+                self._free = False
+        return self._free is not False
 
     def init_global(self, fraction: float = 1.0) -> None:
         """Uniform over the map's free space; roll/pitch from gravity when known (the IMU's,
@@ -193,6 +204,8 @@ class Localizer:
         estimate, state = self._estimate(cloud, stats, weights)
         timer.lap("estimate")
         state, reseed = self._check_loss(estimate, state)
+        if reseed == "global" and not self._can_seed_globally():
+            reseed = "expansion"
         timer.lap("recovery")
         resampled = bool(reseed) or weights.ess < self.cfg.resample.ess_threshold * n
         if resampled:

@@ -247,6 +247,31 @@ def test_a_global_reseed_without_imu_keeps_the_robot_upright(room, ti_runtime):
     assert np.ptp(rpy[:, 2]) > 6.0  # yaw still uniform
 
 
+def test_a_map_without_global_candidates_is_re_seeded_around_the_estimate(room, ti_runtime,
+                                                                           monkeypatch):
+    """Tracking in a map too large for global candidates (a city block): a kidnapping re-seeds
+    around the estimate instead of ending the run with the map error."""
+    from mcl3d.core.errors import MapError
+    from mcl3d.localization import localizer as localizer_module
+    from mcl3d.localization.localization_config import LocalizerConfig
+
+    def too_large(*_args):
+        raise MapError("the map's grid is too large for global initialization candidates")
+
+    monkeypatch.setattr(localizer_module, "free_cells", too_large)
+    tsdf, scanner = room
+    path = localize_world.path(18)
+    cfg = LocalizerConfig.model_validate({"particles": 2000, "seed": 4, "recovery": {
+        "expansion_attempts": 0, "grace_scans": 0}})
+    loc = localizer_module.Localizer(tsdf, cfg)
+    loc.init_pose(path[0], [0.05, 0.05, 0.02, 0.01, 0.01, 0.02])
+    kidnapped = geometry.se3(geometry.rpy_to_rot(0.0, 0.0, 2.0), [5.5, 3.5, 0.8])
+    motions = odometry(path, np.random.default_rng(2))
+    reseeds = [loc.step(scanner.scan(T if k < 10 else kidnapped), dT, 0.1 * k).reseeded
+               for k, (T, dT) in enumerate(zip(path, motions, strict=True))]
+    assert "expansion" in reseeds[10:] and "global" not in reseeds
+
+
 def test_same_result_on_cpu_and_vulkan(vulkan_runtime):
     """A fixed seed gives the same filter on both backends (tiny sizes, lavapipe).
 
