@@ -253,6 +253,27 @@ def count_hits(pts: ti.template(), n: ti.i32, queries: ti.types.ndarray(), num_m
 
 
 @ti.kernel
+def count_hits_each(pts: ti.template(), n: ti.i32, stride: ti.i32, queries: ti.types.ndarray(),
+                    num_maps: ti.i32, res: ti.template(), buckets: ti.i32, max_probes: ti.i32,
+                    vox: ti.template(), out: ti.types.ndarray(), serial: ti.template()):
+    """Per listed map k: how many of the points 0, stride, 2 stride, ... < n land in one of its
+    occupied voxels, taken into its frame by queries[k] (rows as count_hits'): each map's
+    overlap on its own, in one launch. `serial`: a few thousand lookups on the calling thread
+    (on cpu, waking the thread pool of a busy machine costs more than they do)."""
+    ti.loop_config(serialize=serial)
+    for k in range(num_maps):
+        out[k] = 0
+    ti.loop_config(serialize=serial)
+    for i, k in ti.ndrange((n + stride - 1) // stride, num_maps):
+        m = ti.cast(queries[k, 0], ti.i32)
+        q = ti.math.vec4(queries[k, 1], queries[k, 2], queries[k, 3], queries[k, 4])
+        t = vec3(queries[k, 5], queries[k, 6], queries[k, 7])
+        p = quat_to_mat(q) @ pts[i * stride] + t
+        if lookup(vox, voxel_coord(p, res[m]), m, buckets, max_probes) >= 0:
+            ti.atomic_add(out[k], 1)
+
+
+@ti.kernel
 def gather_voxels(vox: ti.template(), begin: ti.i32, end: ti.i32, out_mean: ti.types.ndarray(),
                   out_cov: ti.types.ndarray(), counter: ti.template()):
     """Copy one map's voxels (any order) into ndarrays, for export and tests."""

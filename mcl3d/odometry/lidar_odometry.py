@@ -2,11 +2,12 @@
 
 Per scan: predict the pose (IMU preintegration when IMU samples are given, else constant
 velocity), deskew the points to the scan stamp with that motion, downsample and estimate
-covariances, register against every keyframe's Gaussian voxel maps (two resolutions, GLIM
-style) in one batched GICP, and insert the scan as a keyframe when less than
-`keyframe_overlap` of it lands in the existing keyframes' voxels. The relative motion's
-covariance is the inverse GICP Hessian; a Hessian with a near-null direction is reported as
-degenerate (a corridor, a flat field, an empty or tiny scan) instead of passing silently.
+covariances, register against the Gaussian voxel maps (two resolutions, GLIM style) of the
+keyframes that hold most of the scan at the predicted pose, in one batched GICP, and insert
+the scan as a keyframe when less than `keyframe_overlap` of it lands in the existing
+keyframes' voxels. The relative motion's covariance is the inverse GICP Hessian; a Hessian
+with a near-null direction is reported as degenerate (a corridor, a flat field, an empty or
+tiny scan) instead of passing silently.
 
 Poses are `T_world_lidar` at each scan's header stamp; the world frame is the first scan's
 lidar frame.
@@ -31,6 +32,8 @@ from mcl3d.registration.preprocess import ScanGrid, deskew, estimate_covariances
 
 LOST_COVARIANCE = 1e6  # variance (rad², m²) of a motion that could not be measured
 MEDIAN_SAMPLE = 2048  # points sampled (at least this many, evenly) for the mid-sweep time
+OVERLAP_SAMPLE = 2048  # points (at least, evenly) that rank the keyframes for registration
+HOLDS_SCAN = 0.5  # a keyframe holding less than this share of the best one's overlap: last
 
 
 class OdometryConfig(Section):
@@ -48,7 +51,8 @@ class OdometryConfig(Section):
     max_keyframes: int = Field(10, ge=1, le=64, description="keyframes in the local map "
                                "(oldest evicted; the overlap test lists them all)")
     registration_keyframes: int = Field(3, ge=1, description="register against this many "
-                                        "keyframes nearest to the predicted pose")
+                                        "keyframes: those that see most of the scan at the "
+                                        "predicted pose (overlap; the nearest among equals)")
     max_iterations: int = Field(20, ge=1, description="Gauss-Newton iterations per scan")
     converged_rotation_deg: float = Field(0.1, gt=0, description="converged when a step "
                                           "rotates less than this (small_gicp's default)")
@@ -286,7 +290,7 @@ class LidarOdometry:
                                  True, [f"scan has only {num_points} usable points: pose "
                                         "predicted, not measured"]), T_pred
         rows, lefts = [], []
-        for slot, _, T_kf_world in self._nearest_keyframes(T_pred):
+        for slot, _, T_kf_world in self._registration_keyframes(T_pred):
             for level in range(cfg.map_levels):
                 rows.append(slot * cfg.map_levels + level)
                 lefts.append(T_kf_world)
@@ -317,11 +321,28 @@ class LidarOdometry:
             frame.keyframe = True
         return frame, T
 
-    def _nearest_keyframes(self, T_world_lidar: np.ndarray) -> list[tuple]:
-        """The `registration_keyframes` keyframes closest to the predicted position."""
+    def _registration_keyframes(self, T_world_lidar: np.ndarray) -> list[tuple]:
+        """The `registration_keyframes` nearest keyframes among those that hold at least
+        HOLDS_SCAN of what the best one holds of the scan at the predicted pose (the share of
+        its points, sampled, in each one's coarsest voxels, as the keyframe test counts them);
+        the others only when too few do. Nearness alone ignores where a keyframe looked: with a
+        cropped view, walking back along a forest row after a U-turn, the three nearest
+        keyframes faced the other way and held 0-10% of the scan while older ones ahead held
+        30-40% (paper-forest, 180°); registering against the nearest then slipped 6° in yaw in
+        one scan. Among keyframes that do see the scan the nearest (densest, least drift
+        between) register best: ranking by overlap alone cost 0.3-1 cm ATE on office loops."""
+        cfg = self.cfg
+        if len(self.keyframes) <= cfg.registration_keyframes:
+            return list(self.keyframes)
+        g, coarse = self.gicp, cfg.map_levels - 1
+        overlap = self.maps.overlaps_of(
+            g.pool.points, g.num_source, [slot * cfg.map_levels + coarse for slot, *_ in
+                                          self.keyframes],
+            [T_kf_world @ T_world_lidar for *_, T_kf_world in self.keyframes],
+            stride=max(1, g.num_source // OVERLAP_SAMPLE))
         d = [np.linalg.norm(T[:3, 3] - T_world_lidar[:3, 3]) for _, T, _ in self.keyframes]
-        keep = np.argsort(d, kind="stable")[:self.cfg.registration_keyframes]
-        return [self.keyframes[i] for i in sorted(keep)]
+        keep = np.lexsort((d, overlap < HOLDS_SCAN * overlap.max()))
+        return [self.keyframes[i] for i in sorted(keep[:cfg.registration_keyframes])]
 
     def _insert_keyframe(self, T_world_lidar: np.ndarray) -> None:
         """The scan in the GICP's source pool becomes a keyframe (maps built on the device)."""

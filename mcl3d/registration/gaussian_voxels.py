@@ -18,6 +18,7 @@ from mcl3d.kernels import upload, voxel_hash
 
 GPU_LAUNCH_POINTS = 16384  # points per ordered launch off the cpu: one GPU thread takes them
 # in order, and Mesa's lavapipe stops any loop of one thread after 65,535 iterations
+SERIAL_LOOKUPS = 1 << 16  # fewer voxel lookups: on the calling thread on cpu (~1 ms)
 
 
 def ensure_runtime():
@@ -212,13 +213,29 @@ class GaussianVoxelMaps:
                                      self.vox)
         return hits / n
 
+    def overlaps_of(self, pts, n: int, map_ids: list[int], T_map_points: list[np.ndarray],
+                    stride: int = 1) -> np.ndarray:
+        """Each map's own overlap (`overlap_of` with that map alone) of the first `n` points of
+        a device vec3 field, estimated from every `stride`-th point; one launch for all."""
+        if len(map_ids) != len(T_map_points) or not 1 <= len(map_ids) <= self.max_maps:
+            raise ConfigError("overlap needs one pose per map id and 1..max_maps maps")
+        if stride < 1:
+            raise ConfigError(f"stride must be >= 1, got {stride}")
+        hits = np.zeros(len(map_ids), np.int32)
+        if n <= 0:
+            return hits.astype(np.float64)
+        samples = (n + stride - 1) // stride
+        serial = self.runtime.backend == "cpu" and samples * len(map_ids) <= SERIAL_LOOKUPS
+        voxel_hash.count_hits_each(pts, n, stride, self._queries(map_ids, T_map_points),
+                                   len(map_ids), self.res, self.buckets, self.max_probes,
+                                   self.vox, hits, serial)
+        return hits / samples
+
     def _queries(self, map_ids: list[int], T_map_points: list[np.ndarray]) -> np.ndarray:
         """Rows (map id, qx, qy, qz, qw, tx, ty, tz) for count_hits, checked."""
-        rows = np.empty((len(map_ids), 8), np.float32)
-        for k, (m, T) in enumerate(zip(map_ids, T_map_points, strict=True)):
+        for m in set(map_ids):
             self._region(m)
             if self._voxel_size[m] <= 0:
                 raise MapError(f"map {m} was never cleared/filled: it has no voxel size")
-            T = check_pose(T, "T_map_points")
-            rows[k] = (m, *rot_to_quat(T[:3, :3]), *T[:3, 3])
-        return rows
+        T = np.stack([check_pose(T, "T_map_points") for T in T_map_points])
+        return np.c_[map_ids, rot_to_quat(T[:, :3, :3]), T[:, :3, 3]].astype(np.float32)

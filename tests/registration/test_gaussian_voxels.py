@@ -118,6 +118,46 @@ def test_device_rows_insert_and_overlap_equal_the_host_ones(maps):
         maps.insert_rows(1, field_pts, field_rows, 701, True)
 
 
+def test_overlaps_of_counts_each_map_on_its_own(maps):
+    """overlaps_of (kernels/voxel_hash.count_hits_each) against a NumPy count: per map, the
+    share of every stride-th device point whose voxel that map holds, serial or not."""
+    import taichi as ti
+
+    rng = np.random.default_rng(6)
+    a, ca = random_cloud(rng, 300, extent=2.0)
+    b, cb = random_cloud(rng, 300, extent=2.0, offset=3.0)
+    maps.clear(0, 0.5)
+    maps.insert(0, a, ca)
+    maps.clear(2, 0.8)
+    maps.insert(2, b, cb)
+    query = np.vstack([a[:100], b[:100]]) + rng.normal(0.0, 0.2, (200, 3))
+    query = np.vstack([query, rng.uniform(-3.0, 6.0, (201, 3))])
+    field_pts = ti.Vector.field(3, ti.f32, len(query))
+    field_pts.from_numpy(query.astype(np.float32))
+    poses = [np.eye(4), se3(random_rotations(rng, 1)[0], [0.4, -0.3, 0.2])]
+
+    def reference(stride):
+        out = []
+        for cloud, res, T in ((a, 0.5, poses[0]), (b, 0.8, poses[1])):
+            held = {tuple(k) for k in np.floor(cloud / res).astype(np.int64)}
+            keys = np.floor(transform_points(T, query[::stride]) / res).astype(np.int64)
+            out.append(np.mean([tuple(k) in held for k in keys]))
+        return out
+
+    for stride in (1, 3):
+        got = maps.overlaps_of(field_pts, len(query), [0, 2], poses, stride)
+        np.testing.assert_allclose(got, reference(stride), atol=1.5 / len(query))
+        assert got.min() > 0.05 and got.max() < 0.95  # neither empty nor full: a real test
+    with pytest.MonkeyPatch.context() as mp:  # the parallel path gives the same counts
+        mp.setattr("mcl3d.registration.gaussian_voxels.SERIAL_LOOKUPS", 0)
+        np.testing.assert_array_equal(maps.overlaps_of(field_pts, len(query), [0, 2], poses),
+                                      maps.overlaps_of(field_pts, len(query), [0, 2], poses, 1))
+    assert maps.overlaps_of(field_pts, len(query), [2], poses[1:])[0] == \
+        maps.overlap_of(field_pts, len(query), [2], poses[1:])
+    with pytest.raises(ConfigError, match="stride"):
+        maps.overlaps_of(field_pts, len(query), [0], poses[:1], 0)
+
+
 def test_full_map_raises_a_clear_error(ti_runtime):
     from mcl3d.registration.gaussian_voxels import GaussianVoxelMaps
 
