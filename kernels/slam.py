@@ -337,13 +337,6 @@ def insert_keyframe(n: ti.i32, k: ti.i32, q_cur: ti.template(), t_cur: ti.templa
 
 
 @ti.kernel
-def copy_keyframes(n: ti.i32, num_kf: ti.i32, src: ti.types.ndarray(ndim=3),
-                   dst: ti.types.ndarray(ndim=3)):
-    for i, k, a in ti.ndrange(n, num_kf, 6):
-        dst[i, k, a] = src[i, k, a]
-
-
-@ti.kernel
 def respawn(m: ti.i32, dead: ti.types.ndarray(ndim=1), source: ti.types.ndarray(ndim=1),
             num_kf: ti.i32, q_cur: ti.template(), t_cur: ti.template(),
             fixed_travel: ti.template(), fixed_drift: ti.template(),

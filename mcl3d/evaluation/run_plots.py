@@ -91,7 +91,7 @@ def slam_figure(frames, trajectories: dict[str, Trajectory], map_points: np.ndar
     ground truth, SE(3)-aligned into the map's frame), then their errors, ESS / hypotheses and
     loop particles / pruned particles per scan.
 
-    `frames` are the run's `SlamFrame`s, `trajectories` its "slam" and "odometry" ones,
+    `frames` are the run's records (`SlamFrames`), `trajectories` its "slam" and "odometry" ones,
     `map_points` (n, 3) world-frame points of the map (`map_cell_m` apart, its voxel size),
     `particles` the configured count."""
     slam, odom = trajectories["slam"], trajectories["odometry"]
@@ -114,17 +114,17 @@ def slam_figure(frames, trajectories: dict[str, Trajectory], map_points: np.ndar
         _draw_errors(next(rows), [(evals["slam"].ate, "SLAM", "tab:blue"),
                                   (evals["odometry"].ate, "odometry only", "tab:orange")], t0)
     health = next(rows)
-    health.plot(t, [f.ess for f in frames], "-", color="tab:blue", lw=1.0, label="ESS")
+    health.plot(t, frames.ess, "-", color="tab:blue", lw=1.0, label="ESS")
     health.axhline(particles, ls="--", color="0.4", lw=1.0, label="particles")
-    health.step(t, [f.hypotheses for f in frames], where="post", color="tab:purple", lw=1.0,
+    health.step(t, frames.hypotheses, where="post", color="tab:purple", lw=1.0,
                 label="hypotheses")
     _finish_panel(health, "particles", "effective sample size and hypotheses", log=True)
     loops = next(rows)
-    loops.step(t, [f.looping for f in frames], where="post", color="tab:green", lw=1.0,
+    loops.step(t, frames.looping, where="post", color="tab:green", lw=1.0,
                label="particles seeing a loop")
-    loops.step(t, [f.pruned for f in frames], where="post", color="tab:red", lw=1.0,
+    loops.step(t, frames.pruned, where="post", color="tab:red", lw=1.0,
                label="particles pruned")
-    loops.set_ylim(0, 1.1 * max(1, *(max(f.looping, f.pruned) for f in frames)))
+    loops.set_ylim(0, 1.1 * max(1, int(frames.looping.max()), int(frames.pruned.max())))
     loops.yaxis.set_major_locator(MaxNLocator(integer=True))
     _finish_panel(loops, "particles per scan", "loops and pruning",
                   xlabel=f"time since first scan ({t0:.3f} s) [s]")

@@ -27,7 +27,6 @@ paper leaves open are documented in docs/slam.md.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
 
 import numpy as np
 import taichi as ti
@@ -54,44 +53,12 @@ from mcl3d.registration.preprocess import (
     voxel_downsample,
 )
 from mcl3d.slam.elevator import ElevatorRide, in_elevator
+from mcl3d.slam.frame_store import SlamFrame, SlamFrames
 from mcl3d.slam.slam_config import PredictionNoiseConfig, PruningConfig, SlamConfig
 from mcl3d.slam.slam_particles import DRIFT_SUMS, SlamParticles
 
-STAGES = ("odometry", "preprocess", "predict", "correct", "weigh", "refine", "keyframe",
-          "prune", "estimate")
 HYPOTHESIS_MIN_SHARE = 0.01  # a grid cell holding this share of the weight is a hypothesis
 KEYFRAME_BUCKETS_PER_POINT = 2  # hash slots per keyframe point (rounded up to a power of 2)
-
-
-@dataclass
-class SlamFrame:
-    """One scan's result. The pose is the representative particle's (largest weight)."""
-
-    stamp_ns: int
-    T_world_lidar: np.ndarray
-    T_odom_lidar: np.ndarray  # the odometry front-end's pose
-    T_motion_lidar: np.ndarray  # the same plus the elevator motion it could not see
-    representative: int
-    ess: float
-    max_weight: float
-    hypotheses: int
-    looping: int
-    corrected: int
-    pruned: int
-    keyframe: bool
-    num_keyframes: int
-    elevator: bool
-    travel_m: float
-    odometry_warnings: list[str]
-    timings_ms: dict[str, float] = field(default_factory=dict)
-    # the cloud: weighted mean of the current poses and their 6x6 covariance in the tangent
-    # at the mean (rotation first), as evaluation.consistency reads them
-    T_mean: np.ndarray = field(default_factory=lambda: np.eye(4))
-    covariance: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))
-    # keyframes the representative took a loop correction toward on this scan, and its
-    # pose relative to each of them in its own map (T_keyframe_lidar) after the scan
-    loop_keyframes: tuple[int, ...] = ()
-    loop_relative: tuple[np.ndarray, ...] = ()
 
 
 class _Stopwatch:
@@ -196,7 +163,9 @@ class MonteCarloSlam:
     `map_points()` at any time give the representative particle's result."""
 
     def __init__(self, config: SlamConfig | None = None,
-                 T_lidar_imu: np.ndarray | None = None):
+                 T_lidar_imu: np.ndarray | None = None, scans: int | None = None):
+        """`scans`: how many scans the run expects, if known (the per-scan records are
+        allocated for them)."""
         self.cfg = cfg = config or SlamConfig()
         self.odometry = LidarOdometry(cfg.odometry, T_lidar_imu)
         kf = cfg.keyframes
@@ -210,7 +179,7 @@ class MonteCarloSlam:
         self._keyframes_full = False  # warned once when keyframes.capacity is reached
         self.grid = ScanGrid(max_voxels=cfg.odometry.max_points)
         self._scan_pool = SourcePool(cfg.odometry.max_points)  # the downsampled scan
-        self.frames: list[SlamFrame] = []
+        self.frames = SlamFrames(scans)  # every scan's record, as columns
         self.keyframe_clouds: list[np.ndarray] = []  # lidar frame, front_end.scan_voxel_m
         self.keyframe_frames: list[int] = []  # frame index of every keyframe
         self.travel_m = 0.0
@@ -378,7 +347,7 @@ class MonteCarloSlam:
         voxel_m, oc = self.cfg.front_end.scan_voxel_m, self.cfg.odometry
         twist = None
         if times is not None and not first and len(points) and self.frames:
-            dt = (odo.stamp_ns - self.frames[-1].stamp_ns) * 1e-9
+            dt = (odo.stamp_ns - int(self.frames.stamp_ns[-1])) * 1e-9
             if dt > 0:
                 twist = se3_log(odo.T_prev_curr) / dt
         if oc.k_neighbors <= MAX_K:
@@ -400,7 +369,7 @@ class MonteCarloSlam:
             return False
         if self.particles.num_keyframes == 0:
             return True
-        last = self.frames[self.keyframe_frames[-1]].T_motion_lidar
+        last = self.frames.pose("T_motion_lidar", self.keyframe_frames[-1])
         in_last = transform_points(se3_inverse(last) @ T_motion_lidar, down)
         keys = voxel_keys(in_last, self.cfg.keyframes.overlap_voxel_m)
         overlap = float(np.isin(keys, self._last_keys).mean())
@@ -446,19 +415,17 @@ class MonteCarloSlam:
         each scan hangs off the keyframe before it by the odometry motion since then, so
         the trajectory follows the loop corrections of its keyframes."""
         kf_poses = self.representative_keyframes()
-        stamps = np.array([f.stamp_ns for f in self.frames], dtype=np.int64)
-        poses = np.empty((len(self.frames), 4, 4))
+        frames = self.frames
+        motion = frames.poses("T_motion_lidar")
+        poses = frames.poses("T_world_lidar")  # scans before the first keyframe keep theirs
         anchor = -1
-        for i, f in enumerate(self.frames):
+        for i in range(len(frames)):
             if anchor + 1 < len(self.keyframe_frames) and self.keyframe_frames[anchor + 1] <= i:
                 anchor += 1
-            if anchor < 0:
-                poses[i] = f.T_world_lidar
-                continue
-            kf_frame = self.frames[self.keyframe_frames[anchor]]
-            poses[i] = (kf_poses[anchor] @ se3_inverse(kf_frame.T_motion_lidar)
-                        @ f.T_motion_lidar)
-        return stamps, poses
+            if anchor >= 0:
+                poses[i] = (kf_poses[anchor] @ se3_inverse(motion[self.keyframe_frames[anchor]])
+                            @ motion[i])
+        return frames.stamp_ns.copy(), poses
 
     def map_points(self) -> np.ndarray:
         """The union of the keyframe clouds under the representative's keyframe poses."""

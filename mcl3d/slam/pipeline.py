@@ -41,7 +41,8 @@ from mcl3d.mapping.pipeline import run as build_map
 from mcl3d.maps.build import BuildConfig
 from mcl3d.odometry.scan_feed import LidarImuFeed
 from mcl3d.registration.preprocess import voxel_downsample
-from mcl3d.slam.monte_carlo_slam import STAGES, MonteCarloSlam, SlamFrame
+from mcl3d.slam.frame_store import STAGES, SlamFrames
+from mcl3d.slam.monte_carlo_slam import MonteCarloSlam
 from mcl3d.slam.result_view import SlamView
 from mcl3d.slam.slam_config import SlamConfig
 from mcl3d.slam.slam_summary import SlamSummary, summarize
@@ -99,7 +100,7 @@ class TsdfBuild:
 
 @dataclass
 class SlamResult:
-    frames: list[SlamFrame]
+    frames: SlamFrames
     outputs: SlamOutputs
     summary: SlamSummary
     tsdf: TsdfBuild | None = None
@@ -137,7 +138,7 @@ def _run(req: SlamRequest, outputs: SlamOutputs, on_progress: ProgressCallback |
         try:
             for cloud, imu_rows, T_lidar_imu in feed:
                 if slam is None:
-                    slam = MonteCarloSlam(cfg)
+                    slam = MonteCarloSlam(cfg, scans=total)
                 slam.odometry.T_lidar_imu = T_lidar_imu
                 frame = slam.step(cloud.points, cloud.times_s, cloud.stamp_ns, imu_rows)
                 if view is not None:
@@ -180,16 +181,13 @@ def write_ply(path: Path, points: np.ndarray) -> None:
 def _write_checkpoint(outputs: SlamOutputs, slam: MonteCarloSlam, feed: LidarImuFeed) -> None:
     """The online and odometry trajectories so far and the cheap part of the summary."""
     frames = slam.frames
-    stamps_ns = np.array([f.stamp_ns for f in frames], dtype=np.int64)
-    online = Trajectory.from_ns(stamps_ns, np.stack([f.T_world_lidar for f in frames]))
+    online = Trajectory.from_ns(frames.stamp_ns, frames.poses("T_world_lidar"))
     write_tum(outputs.online, online)
-    write_tum(outputs.odometry,
-              Trajectory.from_ns(stamps_ns, np.stack([f.T_odom_lidar for f in frames])))
-    last = frames[-1]
+    write_tum(outputs.odometry, Trajectory.from_ns(frames.stamp_ns, frames.poses("T_odom_lidar")))
     write_checkpoint_summary(outputs.summary, {
         "scans": len(frames), "particles": slam.cfg.particles,
-        "keyframes": int(last.num_keyframes), "path_length_m": online.path_length_m(),
-        "final_hypotheses": int(last.hypotheses), "final_ess": float(last.ess),
+        "keyframes": int(frames.num_keyframes[-1]), "path_length_m": online.path_length_m(),
+        "final_hypotheses": int(frames.hypotheses[-1]), "final_ess": float(frames.ess[-1]),
         "faults": feed.reader.faults.as_dict()})
 
 
@@ -199,8 +197,8 @@ def _write(outputs: SlamOutputs, slam: MonteCarloSlam, feed: LidarImuFeed,
     stamps_ns, poses = slam.trajectory()
     trajectories = {
         "slam": Trajectory.from_ns(stamps_ns, poses),
-        "online": Trajectory.from_ns(stamps_ns, np.stack([f.T_world_lidar for f in frames])),
-        "odometry": Trajectory.from_ns(stamps_ns, np.stack([f.T_odom_lidar for f in frames]))}
+        "online": Trajectory.from_ns(stamps_ns, frames.poses("T_world_lidar")),
+        "odometry": Trajectory.from_ns(stamps_ns, frames.poses("T_odom_lidar"))}
     write_tum(outputs.tum, trajectories["slam"])
     write_kitti(outputs.kitti, trajectories["slam"])
     write_tum(outputs.online, trajectories["online"])
@@ -223,9 +221,15 @@ COV_UPPER = np.triu_indices(6)
 COV_COLUMNS = [f"cov_{TANGENT[i]}_{TANGENT[j]}" for i, j in zip(*COV_UPPER, strict=True)]
 
 
-def _write_frames(path: Path, frames: list[SlamFrame]) -> None:
+def _write_frames(path: Path, frames: SlamFrames) -> None:
     """One row per scan: the representative's position, the filter's state, the cloud's
     weighted mean pose and covariance (upper triangle, rad and m), stage times."""
+    loops = {i: keyframes for i, keyframes, _ in frames.loops()}
+    columns = [frames.stamp_ns, frames.poses("T_world_lidar"), frames.representative,
+               frames.ess, frames.max_weight, frames.hypotheses, frames.looping,
+               frames.corrected, frames.pruned, frames.keyframe, frames.num_keyframes,
+               frames.elevator, frames.travel_m, frames.timings_ms, frames.poses("T_mean"),
+               frames.covariance]
     with atomic_open(path, "w") as f:
         out = csv.writer(f, lineterminator="\n")
         out.writerow(["stamp_s", "x", "y", "z", "representative", "ess", "max_weight",
@@ -233,14 +237,15 @@ def _write_frames(path: Path, frames: list[SlamFrame]) -> None:
                       "keyframes", "elevator", "travel_m", *[f"{s}_ms" for s in STAGES],
                       "mean_x", "mean_y", "mean_z", "mean_qx", "mean_qy", "mean_qz",
                       "mean_qw", *COV_COLUMNS, "loop_keyframes"])
-        for fr in frames:
-            x, y, z = fr.T_world_lidar[:3, 3]
-            out.writerow([f"{fr.stamp_ns * 1e-9:.9f}", f"{x:.4f}", f"{y:.4f}", f"{z:.4f}",
-                          fr.representative, f"{fr.ess:.1f}", f"{fr.max_weight:.4g}",
-                          fr.hypotheses, fr.looping, fr.corrected, fr.pruned, int(fr.keyframe),
-                          fr.num_keyframes, int(fr.elevator), f"{fr.travel_m:.3f}",
-                          *[f"{fr.timings_ms.get(s, 0.0):.2f}" for s in STAGES],
-                          *[f"{v:.5f}" for v in fr.T_mean[:3, 3]],
-                          *[f"{v:.8f}" for v in rot_to_quat(fr.T_mean[:3, :3])],
-                          *[f"{v:.6g}" for v in fr.covariance[COV_UPPER]],
-                          " ".join(str(k) for k in fr.loop_keyframes)])
+        for i, (stamp_ns, T, rep, ess, max_w, hyp, looping, corrected, pruned, keyframe,
+                num_kf, elevator, travel_m, ms, T_mean, cov) in enumerate(
+                zip(*columns, strict=True)):
+            x, y, z = T[:3, 3]
+            out.writerow([f"{int(stamp_ns) * 1e-9:.9f}", f"{x:.4f}", f"{y:.4f}", f"{z:.4f}",
+                          rep, f"{ess:.1f}", f"{max_w:.4g}", hyp, looping, corrected, pruned,
+                          int(keyframe), num_kf, int(elevator), f"{travel_m:.3f}",
+                          *[f"{v:.2f}" for v in ms],
+                          *[f"{v:.5f}" for v in T_mean[:3, 3]],
+                          *[f"{v:.8f}" for v in rot_to_quat(T_mean[:3, :3])],
+                          *[f"{v:.6g}" for v in cov[COV_UPPER]],
+                          " ".join(str(k) for k in loops.get(i, ()))])

@@ -17,7 +17,6 @@ from mcl3d.kernels import slam as slam_kernels
 from mcl3d.kernels.slam import NEIGHBOURS
 from mcl3d.slam.slam_config import CorrectionConfig, LikelihoodConfig
 
-KEYFRAME_STEP = 8  # keyframe capacity grows in steps of this many
 DRIFT_SUMS = 5  # W, Σ w p (3), V: see SlamParticles.correct
 BYTES_PER_KEYFRAME_POSE = 24  # translation + quaternion vector part, f32
 COVARIANCE_JITTER = 1e-12  # added to a covariance's diagonal before factorizing it
@@ -51,7 +50,10 @@ class SlamParticles:
         self.corrected = ti.field(ti.i32, n)
         self.fixed_travel = ti.field(ti.f32, n)  # travel (m) at the particle's last correction
         self.fixed_drift = ti.Vector.field(DRIFT_SUMS, ti.f32, n)  # drift sums there
-        self.kf = ti.ndarray(ti.f32, (n, KEYFRAME_STEP, 6))
+        # every particle's pose of every keyframe, allocated (and touched) for the whole
+        # capacity now, so a run's memory does not grow as keyframes come
+        self.kf = ti.ndarray(ti.f32, (n, max_keyframes, 6))
+        self.kf.fill(0.0)
         self.kf_travel = ti.ndarray(ti.f32, max_keyframes)
         self.kf_drift = ti.ndarray(ti.f32, (max_keyframes, DRIFT_SUMS + 3))
         self.num_keyframes = 0
@@ -59,23 +61,12 @@ class SlamParticles:
 
     # ---- memory ----
 
-    @property
-    def keyframe_capacity(self) -> int:
-        return self.kf.shape[1]
-
     def state_bytes(self) -> int:
-        """Bytes of particle state: keyframe poses as allocated, current poses, weights."""
+        """Bytes of particle state: keyframe poses (allocated for the whole capacity),
+        current poses, weights."""
         per_particle = 28 + 8 + 2 * 4 * 3 + 24 + 8 + 4 * DRIFT_SUMS  # pose, weights,
         # neighbours, shift, flags, drift sums at the last settled correction
-        return self.n * (self.keyframe_capacity * BYTES_PER_KEYFRAME_POSE + per_particle)
-
-    def _reserve(self, num_keyframes: int) -> None:
-        if num_keyframes <= self.keyframe_capacity:
-            return
-        cap = -(-num_keyframes // KEYFRAME_STEP) * KEYFRAME_STEP
-        grown = ti.ndarray(ti.f32, (self.n, cap, 6))
-        slam_kernels.copy_keyframes(self.n, self.num_keyframes, self.kf, grown)
-        self.kf = grown
+        return self.n * (self.max_keyframes * BYTES_PER_KEYFRAME_POSE + per_particle)
 
     # ---- filter steps ----
 
@@ -101,7 +92,6 @@ class SlamParticles:
             raise ConfigError(f"the run needs more than {self.max_keyframes} keyframes; raise "
                               "keyframes.capacity or lower keyframes.overlap in the SLAM "
                               "config")
-        self._reserve(k + 1)
         slam_kernels.insert_keyframe(self.n, k, self.q_cur, self.t_cur, self.kf)
         self.kf_travel[k] = travel_m
         for a, v in enumerate(np.r_[drift, odom_position]):

@@ -17,7 +17,8 @@ from mcl3d.io.logs.faults import LogFaults
 from mcl3d.io.trajectory import Trajectory
 from mcl3d.mapping.pipeline import format_bytes
 from mcl3d.odometry.odometry_summary import FrameTimesMs, evaluation_entry
-from mcl3d.slam.monte_carlo_slam import STAGES, MonteCarloSlam
+from mcl3d.slam.frame_store import STAGES
+from mcl3d.slam.monte_carlo_slam import MonteCarloSlam
 
 MAX_LISTED_WARNINGS = 100  # the summary lists this many, and counts them all
 WARM_UP_FRAMES = 3  # the first scans include compiling each kernel: left out of the timings
@@ -113,21 +114,24 @@ def summarize(slam: MonteCarloSlam, trajectories: dict[str, Trajectory],
     """The summary of a run; `trajectories` are "slam", "online" and "odometry"; `faults`
     the log's messages dropped."""
     frames = slam.frames
-    steady = frames[WARM_UP_FRAMES:] or frames
-    ms = {s: float(np.mean([f.timings_ms.get(s, 0.0) for f in steady])) for s in STAGES}
-    totals = np.array([sum(f.timings_ms.values()) for f in steady])
-    warnings = [f"scan {i}: {w}" for i, f in enumerate(frames) for w in f.odometry_warnings]
+    timings = frames.timings_ms[WARM_UP_FRAMES:] if len(frames) > WARM_UP_FRAMES else (
+        frames.timings_ms)
+    ms = {s: float(np.mean(timings[:, k].copy())) for k, s in enumerate(STAGES)}
+    totals = np.zeros(len(timings))
+    for k in range(len(STAGES)):  # stage by stage, as a sum over each scan's stages
+        totals = totals + timings[:, k]
+    warnings = [f"scan {i}: {w}" for i, w in frames.warnings]
     accuracy, accuracy_error = _evaluate(trajectories, gt)
     cloud, loop_check = _check_against_truth(slam, gt)
     return SlamSummary(
         scans=len(frames), interrupted=interrupted, particles=slam.cfg.particles,
         keyframes=slam.particles.num_keyframes,
         path_length_m=trajectories["odometry"].path_length_m(),
-        loop_frames=int(sum(f.looping > 0 for f in frames)),
-        corrected_frames=int(sum(f.corrected > 0 for f in frames)),
-        pruned_total=int(sum(f.pruned for f in frames)),
-        elevator_frames=int(sum(f.elevator for f in frames)),
-        final_hypotheses=frames[-1].hypotheses, final_ess=frames[-1].ess,
+        loop_frames=int(np.count_nonzero(frames.looping > 0)),
+        corrected_frames=int(np.count_nonzero(frames.corrected > 0)),
+        pruned_total=int(frames.pruned.sum(dtype=np.int64)),
+        elevator_frames=int(np.count_nonzero(frames.elevator)),
+        final_hypotheses=int(frames.hypotheses[-1]), final_ess=float(frames.ess[-1]),
         ms_per_frame=FrameTimesMs.of(totals), ms_per_stage=ms,
         particle_state_bytes=slam.particles.state_bytes(), notes=notes,
         odometry_warnings=warnings[:MAX_LISTED_WARNINGS], num_odometry_warnings=len(warnings),
@@ -141,24 +145,24 @@ def _check_against_truth(slam: MonteCarloSlam, gt: Trajectory | None
     of them: SLAM's world is its first pose's frame), and the representative's loops."""
     if gt is None:
         return None, None
-    stamps_s = np.array([f.stamp_ns for f in slam.frames], np.int64) * 1e-9
+    frames = slam.frames
+    stamps_s = frames.stamp_ns * 1e-9
     covered = np.flatnonzero((stamps_s >= gt.stamps_s[0]) & (stamps_s <= gt.stamps_s[-1]))
     if len(covered) < MIN_POSES_FOR_ALIGNMENT:
         return None, None
-    frames = [slam.frames[i] for i in covered]
-    truth = align_start(gt.interpolate_poses(stamps_s[covered]), frames[0].T_mean)
-    cloud = consistency(np.stack([f.T_mean for f in frames]),
-                        np.stack([f.covariance for f in frames]), truth)
+    T_means = frames.poses("T_mean")[covered]
+    truth = align_start(gt.interpolate_poses(stamps_s[covered]), T_means[0])
+    cloud = consistency(T_means, frames.covariance[covered], truth)
     true_at = dict(zip(covered.tolist(), truth, strict=True))
     accepted = wrong = 0
     worst = farthest = 0.0
-    for i, f in enumerate(slam.frames):
-        kf_frames = [slam.keyframe_frames[k] for k in f.loop_keyframes]
-        if i not in true_at or not kf_frames or any(j not in true_at for j in kf_frames):
+    for i, loop_keyframes, loop_relative in frames.loops():
+        kf_frames = [slam.keyframe_frames[k] for k in loop_keyframes]
+        if i not in true_at or any(j not in true_at for j in kf_frames):
             continue
         true_rel = [se3_inverse(true_at[j]) @ true_at[i] for j in kf_frames]
         off = max(float(np.linalg.norm((se3_inverse(T) @ E)[:3, 3]))
-                  for T, E in zip(true_rel, f.loop_relative, strict=True))
+                  for T, E in zip(true_rel, loop_relative, strict=True))
         accepted += 1
         wrong += off > WRONG_LOOP_M
         worst = max(worst, off)

@@ -9,7 +9,7 @@ from mcl3d.core.geometry import se3
 from mcl3d.evaluation.run_plots import localize_figure, slam_figure, write_png
 from mcl3d.io.trajectory import Trajectory
 from mcl3d.localization.state import FilterState, LocalizationResult
-from mcl3d.slam.monte_carlo_slam import SlamFrame
+from mcl3d.slam.frame_store import SlamFrame, SlamFrames
 
 STAMPS_NS = 1_700_000_000_000_000_000 + np.arange(6) * 100_000_000
 MAP_POINTS = np.random.default_rng(0).uniform(-5.0, 5.0, (2000, 3))
@@ -35,14 +35,17 @@ def localization_results() -> list[LocalizationResult]:
         for i, (ns, T, state) in enumerate(zip(STAMPS_NS, poses(0.1), states, strict=True))]
 
 
-def slam_run() -> tuple[list[SlamFrame], dict[str, Trajectory]]:
+def slam_run() -> tuple[SlamFrames, dict[str, Trajectory]]:
     slam, odom = poses(0.05), poses(0.2)
     frames = [SlamFrame(stamp_ns=int(ns), T_world_lidar=T, T_odom_lidar=To, T_motion_lidar=To,
                         representative=0, ess=50.0, max_weight=0.1, hypotheses=2,
                         looping=i % 2, corrected=0, pruned=i, keyframe=i == 0, num_keyframes=1,
                         elevator=False, travel_m=0.5 * i, odometry_warnings=[])
               for i, (ns, T, To) in enumerate(zip(STAMPS_NS, slam, odom, strict=True))]
-    return frames, {"slam": Trajectory.from_ns(STAMPS_NS, slam),
+    store = SlamFrames()
+    for frame in frames:
+        store.append(frame)
+    return store, {"slam": Trajectory.from_ns(STAMPS_NS, slam),
                     "odometry": Trajectory.from_ns(STAMPS_NS, odom)}
 
 

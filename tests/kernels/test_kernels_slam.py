@@ -397,10 +397,12 @@ def test_respawn_copies_the_whole_state(ti_runtime):
 
 
 @pytest.mark.parametrize("count", [1, 9])
-def test_particle_keyframe_storage_grows_and_keeps_poses(ti_runtime, count):
-    from mcl3d.slam.slam_particles import KEYFRAME_STEP, SlamParticles
+def test_particle_keyframe_storage_is_allocated_up_front_and_keeps_poses(ti_runtime, count):
+    from mcl3d.slam.slam_particles import SlamParticles
 
     p = SlamParticles(3, 64, gicp=None, seed=0)
+    storage = p.kf
+    assert storage.shape == (3, 64, 6)  # the whole capacity, before any keyframe
     rng = np.random.default_rng(6)
     placed = []
     for k in range(count):
@@ -410,7 +412,7 @@ def test_particle_keyframe_storage_grows_and_keeps_poses(ti_runtime, count):
         p.t_cur.copy_from(t)
         assert p.add_keyframe(float(k), np.full(5, float(k)), np.zeros(3)) == k
         placed.append(T)
-    assert p.keyframe_capacity == -(-count // KEYFRAME_STEP) * KEYFRAME_STEP
+    assert p.kf is storage  # never reallocated as keyframes come
     for i in range(3):
         np.testing.assert_allclose(p.keyframe_poses(i), np.stack([T[i] for T in placed]),
                                    atol=2e-5)

@@ -10,7 +10,7 @@ import numpy as np
 
 from mcl3d.core.geometry import se3, se3_exp, so3_exp
 from mcl3d.io.trajectory import Trajectory
-from mcl3d.slam.monte_carlo_slam import SlamFrame
+from mcl3d.slam.frame_store import SlamFrame, SlamFrames
 from mcl3d.slam.slam_summary import WRONG_LOOP_M, _check_against_truth
 
 SIGMA = np.array([0.01, 0.01, 0.02, 0.1, 0.1, 0.05])
@@ -19,6 +19,13 @@ SIGMA = np.array([0.01, 0.01, 0.02, 0.1, 0.1, 0.05])
 def frame(stamp_ns: int, T_mean: np.ndarray, cov: np.ndarray, loop_kfs=(), loop_rel=()):
     return SlamFrame(stamp_ns, T_mean, T_mean, T_mean, 0, 1.0, 1.0, 1, 0, 0, 0, False, 1,
                      False, 0.0, [], {}, T_mean, cov, tuple(loop_kfs), tuple(loop_rel))
+
+
+def stored(frames: list[SlamFrame]) -> SlamFrames:
+    store = SlamFrames(initial_rows=16)  # grows while the frames go in
+    for f in frames:
+        store.append(f)
+    return store
 
 
 def test_consistency_and_loops_against_the_truth():
@@ -37,12 +44,13 @@ def test_consistency_and_loops_against_the_truth():
     frames = [frame(int(s), m, cov) for s, m in zip(stamps, means, strict=True)]
     frames[300] = frame(int(stamps[300]), means[300], cov, [0], [right])
     frames[301] = frame(int(stamps[301]), means[301], cov, [0], [wrong])
-    slam = SimpleNamespace(frames=frames, keyframe_frames=[kf])
+    slam = SimpleNamespace(frames=stored(frames), keyframe_frames=[kf])
     cloud, loops = _check_against_truth(slam, gt)
     assert cloud.scans == n and 0.9 <= cloud.fraction <= 0.99
     assert loops.accepted == 2 and loops.wrong == 1
     assert loops.worst_m > WRONG_LOOP_M and abs(loops.farthest_m - 0.5 * 296) < 1.0
     narrow = [frame(f.stamp_ns, f.T_mean, cov / 25) for f in frames]
-    cloud, _ = _check_against_truth(SimpleNamespace(frames=narrow, keyframe_frames=[]), gt)
+    cloud, _ = _check_against_truth(SimpleNamespace(frames=stored(narrow), keyframe_frames=[]),
+                                    gt)
     assert cloud.fraction < 0.1
     assert _check_against_truth(slam, None) == (None, None)
