@@ -19,7 +19,7 @@ from mcl3d.io.logs import livox
 from mcl3d.io.logs.bag1_recovery import BagConnection, BagMessage, IntactBagRecords, UnsoundRecord
 from mcl3d.io.logs.faults import DamagedStretch, LogDamage
 from mcl3d.io.logs.ros_types import normalize_type
-from mcl3d.io.logs.sources import StreamDamage, TopicInfo
+from mcl3d.io.logs.sources import StreamDamage, TopicInfo, damage_notes
 
 
 class RecoveredBagSource:
@@ -43,13 +43,7 @@ class RecoveredBagSource:
                 conn.topic, normalize_type(conn.msgtype), 0, bool(conn.msgdef.strip())))
             info.count += counts.get(cid, 0)
             info.handles.append(cid)
-        notes = ["no index: read record by record"]
-        if self.damage is not None:
-            notes.append(f"truncated or damaged at byte {self.damage.damaged_at_byte:,}: "
-                         "read up to it")
-        if self.skipped.stretches:
-            n = len(self.skipped.stretches)
-            notes.append(f"{n} damaged stretch{'es' * (n != 1)} skipped")
+        notes = ["no index: read record by record", *damage_notes(self.damage, self.skipped)]
         self.format = f"ROS 1 bag ({'; '.join(notes)})"
 
     def _walk(self) -> IntactBagRecords:

@@ -59,6 +59,17 @@ class StreamDamage:
     detail: str  # what the reader met at the damage
 
 
+def damage_notes(damage: StreamDamage | None, skipped: LogDamage) -> list[str]:
+    """What a damaged log's format line says: where it is cut, how many stretches skipped."""
+    notes = []
+    if damage is not None:
+        notes.append(f"truncated or damaged at byte {damage.damaged_at_byte:,}: read up to it")
+    if skipped.stretches:
+        n = len(skipped.stretches)
+        notes.append(f"{n} damaged stretch{'es' * (n != 1)} skipped")
+    return notes
+
+
 def _corrupt(path: Path, exc: BaseException) -> LogFormatError:
     detail = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
     return LogFormatError(f"{path}: cannot read the log; it looks truncated or corrupt "
@@ -169,14 +180,7 @@ class McapSource:
     @property
     def format(self) -> str:
         """The format, with the damage met so far."""
-        notes = []
-        if self.damage is not None:
-            notes.append(f"truncated or damaged at byte {self.damage.damaged_at_byte:,}: "
-                         "read up to it")
-        if self.skipped.stretches:
-            n = len(self.skipped.stretches)
-            notes.append(f"{n} damaged stretch{'es' * (n != 1)} skipped")
-        return f"MCAP ({'; '.join([self.profile, *notes])})"
+        return f"MCAP ({'; '.join([self.profile, *damage_notes(self.damage, self.skipped)])})"
 
     def _indexed_summary(self) -> tuple[Header | None, Summary | None]:
         """Header and summary of a complete file, read through its footer; no summary when it
