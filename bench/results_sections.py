@@ -31,10 +31,13 @@ around its stages; \"outside the steps\" is the whole command less its per-scan 
 decoding, outputs). KISS-ICP runs on the same decoded scans in the same process,
 interleaved frame by frame."""),
     ("bench_tsdf_fusion", "Map fusion", """\
-One LiDAR scan fused into a 5 cm two-level TSDF with deskewing and free-space carving, stage
-by stage, against Open3D's `ScalableTSDFVolume` doing the same job in the same run; also
-what share of the scan's points each integration observes. `docs/map-fusion.md` explains
-the stages."""),
+The whole job per scan, as `build-map` does it from a log (its first pass over the log,
+decoding, poses, normals, fusion with deskewing in the kernel), against Open3D end to end on
+the same decoded scans and poses (each scan deskewed on the host with mcl3d's kernel, that
+time counted in Open3D's total, projected into depth images and integrated into a
+VoxelBlockGrid; its projective integration needs no normals). Inputs: a simulated 10 Hz
+OS1-64 log and the real OS1-128 capture. Map quality: the share of scan points within 5 cm
+of each extracted surface, and the distance of its vertices to the world mesh."""),
     ("bench_localize", "Localization update", """\
 Full `Localizer` updates (resampling forced every update, so every stage counts) for N
 particles spread around the true pose as while tracking and M scan points, per stage; the
@@ -44,23 +47,37 @@ the particles, extrapolated to N."""),
     ("study_global", "Global localization and kidnap", ""),
     ("study_ambiguity", "Under real ambiguity (issue #20)", ""),
     ("bench_odometry", "Odometry", """\
-Simulated logs (office and forest worlds, VLP-16 / OS1-64 / MID-360, ground, loop and
-handheld paths) run frame by frame in one process by mcl3d's odometry and its peers on the
-same scans, interleaved; accuracy (ATE, end drift, RPE per metre) and wall and process-cpu
-time per frame, with the ratio to the baseline on the same frames."""),
+Simulated logs, one per world and simulator seed (`--seeds`, default 1-4): an office loop
+(VLP-16), a warehouse drive (OS1-64) and a forest drive (MID-360) cropped to the 180° in
+front, as SLAM's forest case. mcl3d's odometry with and without the IMU, KISS-ICP, GenZ-ICP
+and small_gicp (LiDAR only) and rko-lio (LiDAR + IMU) get the same scans, per-point times
+and IMU samples; each deskews with its own motion estimate (small_gicp, which has none, with
+mcl3d's deskew kernel and its own last motion); every pose is scored at the scans' header
+stamps. They run interleaved frame by frame: ATE, RPE per metre, wall and process-cpu time
+per frame from the same run, with the per-frame ratio to KISS-ICP. In the office and
+warehouse aisles KISS-ICP and rko-lio (whose ICP is built like KISS-ICP's) lose the motion
+along the corridors whatever the voxel size, range, deskew or thresholds; the GICP and
+point-to-plane methods track it, so there only their times compare."""),
     ("bench_gicp", "Batched GICP and align", """\
 One Gauss-Newton linearization of many poses at once against voxel maps (one shared map
 and one map per pose), against a baseline doing the same arithmetic; and `align` on a real
 HDL-32E pair against small_gicp."""),
     ("bench_slam", "Monte Carlo SLAM: cost of a step", """\
-The SLAM back-end's whole step for many particles and keyframes, every particle seeing a
-loop, stage by stage; memory measured (peak RSS and Taichi allocations)."""),
+The whole `MonteCarloSlam.step`, what `mcl3d slam` runs per scan (odometry, deskew and
+downsampling, prediction, neighbour selection, likelihood, refinement, keyframe test and
+insertion, pruning, estimate), on a simulated MID-360 forest log with IMU after a warm-up to
+K keyframes, each scan's own cloud at its own pose, each configuration in a fresh process.
+The path goes forward: these are tracking frames, no loop correction runs. Memory measured:
+peak RSS, its growth while SLAM ran, and the bytes of every Taichi field and ndarray the
+SLAM object owns (particles, GICP scratch, keyframe maps at the default capacity of 256)."""),
     ("study_slam", "Monte Carlo SLAM: accuracy", ""),
     ("bench_transfers", "Host–device traffic per update", """\
 The bytes crossing between host and device per localization update at 10k, 100k and 1M
 particles, and the host's share of the update time."""),
     ("bench_km_map", "Kilometre-scale maps", """\
-The likelihood and the map's memory in a large outdoor map against the office."""),
+A map over more than 1 km × 1 km of streets and facades (synthetic scans along two 1 km
+legs) built, saved, loaded and tracked in: the sparse coarse index, blocks and file, against
+the dense coarse grid the bounds would need (`docs/sparse-maps.md`)."""),
     ("bench_point_maps", "Point-cloud maps without poses (issue #19)", """\
 A map as a SLAM system exports it (the log's scans placed by their true poses, merged and
 voxel-downsampled) turned into a TSDF by whole `build-map` commands, with the trajectory
@@ -270,7 +287,22 @@ and localize grew +34 %: at scan ~1,850 a fast turn smeared the scans (they were
 with the motion since the last scan), the likelihood fell while the pose was right, and the
 global re-seed built the coarse field (+217 MiB) and landed in a look-alike room (ATE 7.5 m
 from there). Deskewed with the motion over each sweep, localize stays converged in 99.96 %
-of the 18,000 scans with 5.2 mm ATE RMSE (max 5.5 cm). SLAM keeps about 3 KB per scan in its
-per-frame records, and its 256 keyframes are full after 10.7 minutes. Plots:
+of the 18,000 scans with 5.2 mm ATE RMSE (max 5.5 cm). Plots:
 `bench/results/soak_{odometry,slam}.png`, `soak_localize_after_deskew_localize.png`.
+
+SLAM then kept about 3 KB of Python objects per scan in its per-frame records and grew its
+keyframe storage until the 256 keyframes were full (10.7 minutes). With the records in typed
+columns reserved for the log's scan count (814 bytes a scan) and the keyframe poses
+allocated to capacity at start, the same soak of `slam` alone (load 4-12; its run took 22
+minutes):
+
+| command | RSS at 1 min | at the end | growth | in the second half | slope | peak |
+| --- | --- | --- | --- | --- | --- | --- |
+| slam | 769 MiB | 782 MiB | +1.8 % | +1.2 % | 0.57 MiB/min | 817 MiB (writing outputs) |
+
+`bench/results/soak_slam_reserved.json`, plot `soak_slam_reserved_slam.png`. The run's
+accuracy is another matter: once its 256 keyframes are full (about scan 6,400) SLAM no longer
+holds this loop (ATE 11.9 m; 13,393 of 14,938 accepted loops more than 2 m off). An earlier
+run of the same soak gave 24.4 m (odometry 29.8 m against 10.0 m); whether this session's
+odometry change or run-to-run differences explain it is not yet checked.
 """),}
