@@ -256,7 +256,7 @@ def test_bad_inputs_are_clear_errors(ti_runtime, room_files, tmp_path):
     empty_log = tmp_path / "empty.mcap"
     _write_log(empty_log, scans, world.POSES, stamps, empty=True)
     result = _invoke("build-map", empty_log, "-o", tmp_path / "e.tsdf")
-    assert "none of its 3 scans has points" in _failed(result)
+    assert "no scan on /lidar/points has 10 points or more" in _failed(result)
     assert not (tmp_path / "e.tsdf").exists()
     empty_cloud = tmp_path / "empty.pcd"
     empty_cloud.write_text("# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\n"

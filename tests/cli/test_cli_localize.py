@@ -127,7 +127,7 @@ def test_all_scans_empty_is_an_error(data, tmp_path):
     r = invoke("localize", data / "empty.mcap", "--map", data / "room.tsdf", "-o",
                tmp_path / "o", "--init", "gt", "--particles", 1000, "--backend", "cpu")
     assert r.exit_code == 1
-    assert "no usable scans: 3 scans dropped with no valid point" in said(r)
+    assert "no scan on /lidar/points has 10 points or more" in said(r)
 
 
 def test_map_and_log_far_apart(data, tmp_path):

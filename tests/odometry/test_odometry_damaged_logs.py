@@ -111,6 +111,16 @@ def test_a_planar_scanner_stops_6dof_commands(clean_log, tmp_path):
         assert not out.exists()
 
 
+def test_a_log_without_a_usable_scan_names_its_topic(clean_log, tmp_path):
+    log = _rewritten(clean_log, tmp_path / "nan.mcap", lambda p: p * np.nan)
+    for command, out in (("odometry", tmp_path / "odo"), ("slam", tmp_path / "slam"),
+                         ("build-map", tmp_path / "map.tsdf")):
+        result = CliRunner().invoke(app, [command, str(log), "-o", str(out), "--backend", "cpu"])
+        _one_error_line(result, "no scan on /lidar/points has 10 points or more")
+        assert "--points-topic" in str(result.exception)
+        assert not out.exists()
+
+
 def test_real_scans_pass_the_checks(clean_log):
     from mcl3d.io.logs.plausibility import check_scans
     from mcl3d.io.logs.reader import LogReader

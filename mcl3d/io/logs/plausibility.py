@@ -79,6 +79,10 @@ def check_3d(log: Path, scans: list[PointCloud]) -> None:
 def check_scans(reader, log: Path, needs_3d: bool) -> None:
     """The checks above on the log's first scans; `needs_3d` for 6-DoF motion from scans."""
     scans = first_scans(reader)
+    if not scans:
+        raise InputError(f"{log}: no scan on {reader.topics.points} has {MIN_POINTS} points or "
+                         "more (every one is empty or all NaN): nothing to work with; if the "
+                         "scans are on another topic, name it with --points-topic")
     check_units(log, scans)
     if needs_3d:
         check_3d(log, scans)
