@@ -3,8 +3,9 @@
 State, structure of arrays: each particle's current pose in `q_cur` (vec4) / `t_cur` (vec3)
 fields, and its own copy of every keyframe pose in one ndarray `kf[N, K, 6]` holding the
 translation and the quaternion's vector part (w >= 0 implied): 24 bytes per particle and
-keyframe, so 100,000 particles x 100 keyframes take 240 MB. The ndarray is reallocated in
-steps as keyframes arrive, so memory follows the keyframe count.
+keyframe, so 100,000 particles x 100 keyframes take 240 MB. The ndarray is allocated for
+`keyframes.capacity` slots at start; once they are full a new keyframe reuses a slot, so a
+keyframe's age is its number `kf_seq[k]` (the order keyframes were made in), not its slot.
 
 Groups of the batched GICP (kernels/gicp.py) are (particle, neighbour) pairs, `g = 3 i + j`,
 one row each: every group owns its sums (no float atomics), and the particle's three
@@ -77,15 +78,16 @@ def shift_vertical(n: ti.i32, shift: vec3, up: vec3, sigma_m: ti.f32, seed: ti.u
 @ti.kernel
 def select_neighbours(n: ti.i32, num_kf: ti.i32, kf: ti.types.ndarray(ndim=3),
                       q_cur: ti.template(), t_cur: ti.template(),
-                      kf_travel: ti.types.ndarray(ndim=1), travel_now_m: ti.f32,
+                      kf_travel: ti.types.ndarray(ndim=1), kf_seq: ti.types.ndarray(ndim=1),
+                      first_recent_seq: ti.i32, travel_now_m: ti.f32,
                       loop_min_travel_m: ti.f32, min_facing_cos: ti.f32, up: vec3,
                       max_dz_m: ti.f32, nb: ti.template(), nb_loop: ti.template()) -> ti.i32:
     """The 3 keyframes nearest to each particle's current position in its own map (ties go
-    to the older keyframe), leaving out keyframes more than `max_dz_m` above or below it
-    (another floor); a neighbour is a loop when it is not one of the 3 newest keyframes, the
-    odometry travelled more than `loop_min_travel_m` since it, and its lidar faces within
-    acos(min_facing_cos) of the particle's (+x axes). Returns how many particles see a
-    loop."""
+    to the lower slot), leaving out keyframes more than `max_dz_m` above or below it
+    (another floor); a neighbour is a loop when it is not one of the newest keyframes (its
+    number `kf_seq` is below `first_recent_seq`), the odometry travelled more than
+    `loop_min_travel_m` since it, and its lidar faces within acos(min_facing_cos) of the
+    particle's (+x axes). Returns how many particles see a loop."""
     looping = 0
     for i in range(n):
         p = t_cur[i]
@@ -110,7 +112,7 @@ def select_neighbours(n: ti.i32, num_kf: ti.i32, kf: ti.types.ndarray(ndim=3),
             k = idx[j]
             nb[i, j] = k
             is_loop = 0
-            if k >= 0 and k < num_kf - NEIGHBOURS:
+            if k >= 0 and kf_seq[k] < first_recent_seq:
                 q_kf, _ = load_keyframe(kf, i, k)
                 facing = quat_rotate(q_kf, vec3(1.0, 0.0, 0.0)).dot(forward)
                 is_loop = ti.select(travel_now_m - kf_travel[k] > loop_min_travel_m

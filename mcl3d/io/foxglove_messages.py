@@ -131,11 +131,13 @@ def lines(points: np.ndarray, rgba, kind: str = "strip", thickness_m: float = 0.
                          color=color(rgba))
 
 
-def scene(stamp_ns: int, frame: str, entities: dict[str, dict]) -> SceneUpdate:
-    """A scene that replaces everything the channel drew before: one entity per id, its
-    primitives given by `SceneEntity` keyword (spheres, arrows, lines, texts)."""
+def scene(stamp_ns: int, frame: str, entities: dict[str, dict],
+          replace: bool = True) -> SceneUpdate:
+    """A scene that replaces everything the channel drew before (or, with `replace` False,
+    adds to it): one entity per id, its primitives given by `SceneEntity` keyword (spheres,
+    arrows, lines, texts)."""
     clear = SceneEntityDeletion(timestamp=stamp(stamp_ns), type=SceneEntityDeletionType.All)
-    return SceneUpdate(deletions=[clear], entities=[
+    return SceneUpdate(deletions=[clear] if replace else [], entities=[
         SceneEntity(timestamp=stamp(stamp_ns), frame_id=frame, id=name,
                     lifetime=Duration(0, 0), **primitives)
         for name, primitives in entities.items()])

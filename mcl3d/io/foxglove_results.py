@@ -228,12 +228,15 @@ class ResultPublisher:
     def publish_keyframes(self, stamp_ns: int, poses: np.ndarray) -> None:
         self._log("/keyframes", lambda: fm.poses_in_frame(stamp_ns, MAP_FRAME, poses), stamp_ns)
 
-    def publish_loops(self, stamp_ns: int, segments: np.ndarray) -> None:
-        """Accepted loop corrections (K, 2, 3): a line from the pose to the loop keyframe."""
+    def publish_loops(self, stamp_ns: int, segments: np.ndarray, name: str | None = None
+                      ) -> None:
+        """Accepted loop corrections (K, 2, 3): a line from the pose to the loop keyframe.
+        They replace the lines drawn before, or with `name` are added to them as that entity
+        (a long run then publishes each loop once)."""
         pairs = np.asarray(segments, np.float64).reshape(-1, 3)
-        lines = {"loops": {"lines": [fm.lines(pairs, LOOP_RGBA, "list", 0.08)]}}
-        self._log("/loops", lambda: fm.scene(stamp_ns, MAP_FRAME, lines if len(pairs) else {}),
-                  stamp_ns)
+        lines = {name or "loops": {"lines": [fm.lines(pairs, LOOP_RGBA, "list", 0.08)]}}
+        self._log("/loops", lambda: fm.scene(stamp_ns, MAP_FRAME, lines if len(pairs) else {},
+                                             replace=name is None), stamp_ns)
 
     def publish_trajectories(self, stamp_ns: int, paths: list[np.ndarray]) -> None:
         """One line strip per hypothesis (positions (N, 3), heaviest first)."""

@@ -16,7 +16,9 @@ Per scan:
    particles without a loop then take one Gauss-Newton step toward their neighbours with
    the prediction as prior, so the noise does not pile up where the scan pins the pose;
 5. keyframes: the scan becomes a keyframe for every particle when its voxel overlap with the
-   last keyframe (under the odometry motion) falls below `keyframes.overlap`;
+   last keyframe (under the odometry motion) falls below `keyframes.overlap`; once
+   `keyframes.capacity` keyframes are kept, it replaces the most redundant one
+   (mcl3d.slam.keyframe_store), so a run of any length keeps a bounded store;
 6. pruning: particles with a negligible posterior or frame likelihood are replaced by copies
    of living ones drawn by weight, the weight split between the copies.
 
@@ -54,6 +56,7 @@ from mcl3d.registration.preprocess import (
 )
 from mcl3d.slam.elevator import ElevatorRide, in_elevator
 from mcl3d.slam.frame_store import SlamFrame, SlamFrames
+from mcl3d.slam.keyframe_store import KeyframeBook, slot_to_reuse
 from mcl3d.slam.slam_config import PredictionNoiseConfig, PruningConfig, SlamConfig
 from mcl3d.slam.slam_particles import DRIFT_SUMS, SlamParticles
 
@@ -176,12 +179,11 @@ class MonteCarloSlam:
         self.gicp = BatchGicp(self.maps, max_groups=groups, max_rows=groups,
                               max_source_points=cfg.correction.points)
         self.particles = SlamParticles(cfg.particles, kf.capacity, self.gicp, cfg.seed)
-        self._keyframes_full = False  # warned once when keyframes.capacity is reached
+        self._keyframes_full = False  # said once when keyframes.capacity is reached
         self.grid = ScanGrid(max_voxels=cfg.odometry.max_points)
         self._scan_pool = SourcePool(cfg.odometry.max_points)  # the downsampled scan
         self.frames = SlamFrames(scans)  # every scan's record, as columns
-        self.keyframe_clouds: list[np.ndarray] = []  # lidar frame, front_end.scan_voxel_m
-        self.keyframe_frames: list[int] = []  # frame index of every keyframe
+        self.keyframes = KeyframeBook()  # scans, clouds (front_end.scan_voxel_m), dropped
         self.travel_m = 0.0
         # the prediction's variance summed along the path: rotational W, Σ w_j p_j (p_j the
         # odometry's position), translational V; loop corrections are spread by them
@@ -219,15 +221,13 @@ class MonteCarloSlam:
                                                                     T_odom, watch)
         keyframe = not elevator and self._keyframe_due(down, T_odom)
         warnings = list(odo.warnings)
-        if keyframe and self.particles.num_keyframes >= self.particles.max_keyframes:
-            keyframe = False  # the run goes on against the keyframes it has
-            if not self._keyframes_full:
-                warnings.append(f"all {self.particles.max_keyframes} keyframes are used: later "
-                                "scans are tracked but not kept as keyframes (raise "
-                                "keyframes.capacity)")
+        if keyframe and self.particles.full and not self._keyframes_full:
+            warnings.append(f"all {self.particles.max_keyframes} keyframes are used: each new "
+                            "keyframe now replaces the most redundant one (raise "
+                            "keyframes.capacity to keep more)")
             self._keyframes_full = True
         if keyframe:
-            self._add_keyframe(down, covs, T_odom[:3, 3])
+            self._add_keyframe(down, covs, T_odom[:3, 3], loops)
         watch.lap("keyframe")
         pruned, post, origin = self._prune(step, scored)
         watch.lap("prune")
@@ -237,18 +237,22 @@ class MonteCarloSlam:
         T_rep = poses[self._rep].copy()  # a view would keep every particle's pose alive
         hyp = count_hypotheses(poses[:, :3, 3], post, cfg.pruning.hypothesis_cell_m)
         T_mean, cloud_cov = weighted_pose_mean(poses, post)
-        loop_kfs = loops.get(int(origin[self._rep]), ())
-        kf_poses = p.keyframe_poses(self._rep)[list(loop_kfs)] if loop_kfs else []
+        loop_slots = list(loops.get(int(origin[self._rep]), ()))
+        kf_poses = p.keyframe_poses(self._rep)[loop_slots] if loop_slots else []
         watch.lap("estimate")
         frame = SlamFrame(stamp_ns, T_rep, odo.T_world_lidar, T_odom, self._rep,
                           float(1.0 / np.sum(post**2)), float(post.max()), hyp, looping,
                           corrected, pruned, keyframe, p.num_keyframes, elevator,
                           self.travel_m, warnings, watch.ms, T_mean, cloud_cov,
-                          loop_kfs, tuple(se3_inverse(T) @ T_rep for T in kf_poses))
+                          tuple(int(p.seq[k]) for k in loop_slots),
+                          tuple(se3_inverse(T) @ T_rep for T in kf_poses))
         self.frames.append(frame)
-        if keyframe:
-            self.keyframe_frames.append(len(self.frames) - 1)
         return frame
+
+    @property
+    def keyframe_frames(self) -> list[int]:
+        """The scan index of every keyframe made, by keyframe number."""
+        return self.keyframes.frames
 
     def _predict(self, odo: OdometryFrame, T_odom: np.ndarray, lift, step: int) -> np.ndarray:
         """Move every particle by the odometry's motion plus noise (and the elevator's lift);
@@ -375,14 +379,35 @@ class MonteCarloSlam:
         overlap = float(np.isin(keys, self._last_keys).mean())
         return overlap < self.cfg.keyframes.overlap
 
-    def _add_keyframe(self, down: np.ndarray, covs: np.ndarray, odom_position: np.ndarray
-                      ) -> None:
-        k = self.particles.add_keyframe(self.travel_m, self.drift, odom_position)
+    def _add_keyframe(self, down: np.ndarray, covs: np.ndarray, odom_position: np.ndarray,
+                      loops: dict[int, tuple[int, ...]]) -> None:
+        """The scan becomes a keyframe, in a free slot or, when all are used, in the one
+        `_slot_to_reuse` frees. `loops`: the slots the particles were corrected toward on this
+        scan (kept, so the scan's record names them)."""
+        p = self.particles
+        slot = self._slot_to_reuse(loops) if p.full else None
+        k = p.add_keyframe(self.travel_m, self.drift, odom_position, slot)
         pts, cv = thin(down, covs, self.cfg.keyframes.max_points)
         self.maps.clear(k, self.cfg.keyframes.voxel_m)
         self.maps.insert(k, pts, cv)
-        self.keyframe_clouds.append(down.astype(np.float32))
+        self.keyframes.add(k, len(self.frames), down.astype(np.float32))
         self._last_keys = np.unique(voxel_keys(down, self.cfg.keyframes.overlap_voxel_m))
+
+    def _slot_to_reuse(self, loops: dict[int, tuple[int, ...]]) -> int:
+        """The slot of the most redundant keyframe in the representative's map (see
+        keyframe_store), keeping the newest keyframes (the local map), the representative's
+        neighbours and this scan's loop keyframes; the dropped keyframe's pose is frozen."""
+        p, rep = self.particles, self._rep
+        T_slots = p.keyframe_poses(rep)
+        newest = p.slots_in_order()[-min(NEIGHBOURS, p.max_keyframes - 1):]
+        protected = {int(k) for k in newest}
+        protected.update(int(k) for k in p.nb.to_numpy()[rep] if k >= 0)
+        protected.update(k for kfs in loops.values() for k in kfs)
+        facing = self.cfg.front_end.fov_deg / 2 if self.cfg.loop_closure.facing_gate else 180
+        slot = slot_to_reuse(T_slots, p.seq[:p.num_keyframes], protected,
+                             float(np.cos(np.deg2rad(facing))))
+        self.keyframes.retire(int(p.seq[slot]), T_slots[slot])
+        return slot
 
     def _prune(self, step: int, scored: bool) -> tuple[int, np.ndarray, np.ndarray]:
         """Prune; particles without a neighbour keyframe (unmapped space, another floor) get
@@ -408,28 +433,31 @@ class MonteCarloSlam:
     # ---- results of the representative particle ----
 
     def representative_keyframes(self) -> np.ndarray:
-        return self.particles.keyframe_poses(self._rep)
+        """The representative's poses of the keyframes kept, oldest first."""
+        return self.particles.keyframe_poses(self._rep)[self.particles.slots_in_order()]
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
         """(stamps_ns, poses) of every scan as the representative particle's map places it:
         each scan hangs off the keyframe before it by the odometry motion since then, so
-        the trajectory follows the loop corrections of its keyframes."""
-        kf_poses = self.representative_keyframes()
+        the trajectory follows the loop corrections of its keyframes (a keyframe dropped
+        from a full store keeps the pose it had then)."""
+        p = self.particles
+        kf_poses = self.keyframes.poses_by_number(p.keyframe_poses(self._rep), p.seq)
+        kf_frames = self.keyframe_frames
         frames = self.frames
         motion = frames.poses("T_motion_lidar")
         poses = frames.poses("T_world_lidar")  # scans before the first keyframe keep theirs
         anchor = -1
         for i in range(len(frames)):
-            if anchor + 1 < len(self.keyframe_frames) and self.keyframe_frames[anchor + 1] <= i:
+            if anchor + 1 < len(kf_frames) and kf_frames[anchor + 1] <= i:
                 anchor += 1
             if anchor >= 0:
-                poses[i] = (kf_poses[anchor] @ se3_inverse(motion[self.keyframe_frames[anchor]])
-                            @ motion[i])
+                poses[i] = kf_poses[anchor] @ se3_inverse(motion[kf_frames[anchor]]) @ motion[i]
         return frames.stamp_ns.copy(), poses
 
     def map_points(self) -> np.ndarray:
-        """The union of the keyframe clouds under the representative's keyframe poses."""
-        kf_poses = self.representative_keyframes()
+        """The union of the kept keyframes' clouds under the representative's poses."""
+        kf_poses = self.particles.keyframe_poses(self._rep)  # by slot, as the clouds
         clouds = [transform_points(T, c.astype(np.float64))
-                  for T, c in zip(kf_poses, self.keyframe_clouds, strict=True)]
+                  for T, c in zip(kf_poses, self.keyframes.clouds, strict=True)]
         return np.concatenate(clouds) if clouds else np.zeros((0, 3))

@@ -43,7 +43,7 @@ class SlamView:
     def __init__(self, publisher: ResultPublisher) -> None:
         self.pub = publisher
         self.align = StartAligned()
-        self.loops: list[np.ndarray] = []  # (2, 3) per accepted loop: pose -> keyframe
+        self.loop_scans = 0  # scans whose loops were published
         self.several = False  # whether more than one hypothesis was shown last
         self.elevator = False
         self.last_ns = 0
@@ -61,12 +61,8 @@ class SlamView:
         hyps = hypotheses(poses, weights, slam.cfg.pruning.hypothesis_cell_m)
         pub.publish_hypotheses(stamp, [(T, cov, share) for T, cov, share, best in hyps
                                        if best != frame.representative])
+        self.publish_loops(frame)
         kf_poses = slam.representative_keyframes()
-        for k in frame.loop_keyframes:
-            self.loops.append(np.stack([frame.T_world_lidar[:3, 3], kf_poses[k][:3, 3]]))
-            pub.log(stamp, "info", f"loop closed toward keyframe {k}")
-        if frame.loop_keyframes:
-            pub.publish_loops(stamp, np.stack(self.loops))
         if frame.keyframe or frame.loop_keyframes or len(slam.frames) % TRAJECTORY_EVERY == 1:
             pub.publish_keyframes(stamp, kf_poses)
             pub.publish_trajectories(stamp, [self._path(slam, best) for *_, best in hyps])
@@ -78,10 +74,24 @@ class SlamView:
             "ms": sum(frame.timings_ms.values())})
         self._log_changes(frame, len(hyps) > 1)
 
+    def publish_loops(self, frame: SlamFrame) -> None:
+        """The scan's accepted loops as lines from its pose to each loop keyframe, added to
+        those drawn before (each loop is published once)."""
+        if not frame.loop_keyframes:
+            return
+        segments = []
+        for k, T_keyframe_lidar in zip(frame.loop_keyframes, frame.loop_relative, strict=True):
+            T_world_keyframe = frame.T_world_lidar @ np.linalg.inv(T_keyframe_lidar)
+            segments.append(np.stack([frame.T_world_lidar[:3, 3], T_world_keyframe[:3, 3]]))
+            self.pub.log(frame.stamp_ns, "info", f"loop closed toward keyframe {k}")
+        self.pub.publish_loops(frame.stamp_ns, np.stack(segments), f"loop {self.loop_scans}")
+        self.loop_scans += 1
+
     @staticmethod
     def _path(slam: MonteCarloSlam, particle: int) -> np.ndarray:
-        """A particle's trajectory through its own keyframes, ending at its pose now."""
-        keyframes = slam.particles.keyframe_poses(particle)[:, :3, 3]
+        """A particle's trajectory through its own kept keyframes, ending at its pose now."""
+        p = slam.particles
+        keyframes = p.keyframe_poses(particle)[p.slots_in_order(), :3, 3]
         return np.vstack([keyframes, slam.particles.positions()[particle]])
 
     def _error(self, frame: SlamFrame, gt_stamps_ns: list[int], gt_poses: list[np.ndarray]

@@ -2,6 +2,12 @@
 poses, cumulative log weights, and the batched GICP that scores them against the shared
 keyframe voxel maps (kernels/slam.py does the arithmetic).
 
+Keyframes live in `max_keyframes` slots. A keyframe is known by its number (the order
+keyframes were made in, `seq`); until the slots are full number and slot agree, after that a
+new keyframe takes the slot its caller frees (`add_keyframe(..., slot=)`), so a slot's age is
+`seq[slot]`, and every per-slot value (poses of every particle, travel, drift sums, number)
+is rewritten together.
+
 Host side stays O(N) and small: log weights come back once per frame for pruning and the
 representative particle; keyframe poses only come back for one particle at a time.
 """
@@ -56,7 +62,11 @@ class SlamParticles:
         self.kf.fill(0.0)
         self.kf_travel = ti.ndarray(ti.f32, max_keyframes)
         self.kf_drift = ti.ndarray(ti.f32, (max_keyframes, DRIFT_SUMS + 3))
-        self.num_keyframes = 0
+        self.kf_seq = ti.ndarray(ti.i32, max_keyframes)
+        self.kf_seq.fill(-1)
+        self.seq = np.full(max_keyframes, -1, np.int64)  # host copy of kf_seq
+        self.next_seq = 0  # the number the next keyframe gets
+        self.num_keyframes = 0  # slots in use
         self.q_cur.from_numpy(np.tile(np.array([0.0, 0.0, 0.0, 1.0], np.float32), (n, 1)))
 
     # ---- memory ----
@@ -82,22 +92,34 @@ class SlamParticles:
                                     np.asarray(up, np.float32), sigma_m, self.seed, step,
                                     self.t_cur)
 
-    def add_keyframe(self, travel_m: float, drift: np.ndarray, odom_position: np.ndarray
-                     ) -> int:
-        """Every particle's current pose becomes the pose of a new keyframe; returns its id.
-        `drift` are the odometry's drift sums at this scan (see `correct`), `odom_position`
-        its position."""
-        k = self.num_keyframes
-        if k >= self.max_keyframes:
-            raise ConfigError(f"the run needs more than {self.max_keyframes} keyframes; raise "
-                              "keyframes.capacity or lower keyframes.overlap in the SLAM "
-                              "config")
+    @property
+    def full(self) -> bool:
+        return self.num_keyframes >= self.max_keyframes
+
+    def add_keyframe(self, travel_m: float, drift: np.ndarray, odom_position: np.ndarray,
+                     slot: int | None = None) -> int:
+        """Every particle's current pose becomes the pose of a new keyframe, in the next
+        free slot or, once all are used, in `slot` (the keyframe there is dropped); returns
+        the slot. `drift` are the odometry's drift sums at this scan (see `correct`),
+        `odom_position` its position."""
+        k = self.num_keyframes if slot is None else int(slot)
+        if not 0 <= k < self.max_keyframes or (slot is not None and not self.full):
+            raise ConfigError(f"keyframe slot {k} is not free (keyframes: "
+                              f"{self.num_keyframes} of {self.max_keyframes}); a slot is "
+                              "reused only once all are used")
         slam_kernels.insert_keyframe(self.n, k, self.q_cur, self.t_cur, self.kf)
         self.kf_travel[k] = travel_m
         for a, v in enumerate(np.r_[drift, odom_position]):
             self.kf_drift[k, a] = float(v)
-        self.num_keyframes = k + 1
+        self.kf_seq[k] = self.next_seq
+        self.seq[k] = self.next_seq
+        self.next_seq += 1
+        self.num_keyframes = max(self.num_keyframes, k + 1)
         return k
+
+    def slots_in_order(self) -> np.ndarray:
+        """The used slots, oldest keyframe first."""
+        return np.argsort(self.seq[:self.num_keyframes], kind="stable")
 
     def select_neighbours(self, travel_m: float, loop_min_travel_m: float,
                           up: np.ndarray | None = None, max_dz_m: float = np.inf,
@@ -108,7 +130,8 @@ class SlamParticles:
         up = np.array([0.0, 0.0, 1.0]) if up is None else up
         return int(slam_kernels.select_neighbours(
             self.n, self.num_keyframes, self.kf, self.q_cur, self.t_cur, self.kf_travel,
-            travel_m, loop_min_travel_m, float(np.cos(max_facing_rad)),
+            self.kf_seq, self.next_seq - NEIGHBOURS, travel_m, loop_min_travel_m,
+            float(np.cos(max_facing_rad)),
             np.asarray(up, np.float32), min(max_dz_m, F32_MAX), self.nb, self.nb_loop))
 
     def _linearize(self, num_src: int, loop_only: bool) -> None:
@@ -238,7 +261,7 @@ class SlamParticles:
         return self.t_cur.to_numpy().astype(np.float64)
 
     def keyframe_poses(self, i: int) -> np.ndarray:
-        """(K, 4, 4) keyframe poses of particle i."""
+        """(K, 4, 4) keyframe poses of particle i, by slot."""
         K = self.num_keyframes
         out = np.zeros((max(K, 1), 6), np.float32)
         if K:

@@ -68,7 +68,7 @@ class SlamSummary:
     scans: int
     interrupted: bool
     particles: int
-    keyframes: int
+    keyframes: int  # kept at the end (at most keyframes.capacity)
     path_length_m: float  # of the odometry
     loop_frames: int  # scans on which some particle saw a loop
     corrected_frames: int  # scans on which some particle took a loop correction
@@ -89,11 +89,13 @@ class SlamSummary:
     # representative's loop corrections that matched a keyframe truly elsewhere
     consistency: Consistency | None = None
     loop_check: LoopCheck | None = None
+    keyframes_made: int = 0  # over the run; beyond the capacity each replaced a kept one
 
     def as_dict(self) -> dict:
         return {
             "scans": self.scans, "interrupted": self.interrupted,
             "particles": self.particles, "keyframes": self.keyframes,
+            "keyframes_made": self.keyframes_made,
             "path_length_m": self.path_length_m, "loop_frames": self.loop_frames,
             "corrected_frames": self.corrected_frames, "pruned_total": self.pruned_total,
             "elevator_frames": self.elevator_frames,
@@ -136,7 +138,7 @@ def summarize(slam: MonteCarloSlam, trajectories: dict[str, Trajectory],
         particle_state_bytes=slam.particles.state_bytes(), notes=notes,
         odometry_warnings=warnings[:MAX_LISTED_WARNINGS], num_odometry_warnings=len(warnings),
         accuracy=accuracy, accuracy_error=accuracy_error, faults=faults or LogFaults(),
-        consistency=cloud, loop_check=loop_check)
+        consistency=cloud, loop_check=loop_check, keyframes_made=len(slam.keyframe_frames))
 
 
 def _check_against_truth(slam: MonteCarloSlam, gt: Trajectory | None
@@ -194,7 +196,9 @@ def summary_rows(summary: SlamSummary, backend: str, output_dir: Path,
     the TSDF map built from the result, if any."""
     s, ms = summary, summary.ms_per_frame
     stages = ", ".join(f"{k} {v:.0f}" for k, v in s.ms_per_stage.items() if v >= 0.5)
-    rows = [("scans", f"{s.scans} ({s.keyframes} keyframes, {s.path_length_m:.1f} m)"),
+    kept = (f"{s.keyframes} keyframes" if s.keyframes_made <= s.keyframes
+            else f"{s.keyframes_made} keyframes, {s.keyframes} kept")
+    rows = [("scans", f"{s.scans} ({kept}, {s.path_length_m:.1f} m)"),
             ("particles", f"{s.particles:,} ({format_bytes(s.particle_state_bytes)} "
                           "of particle state)"),
             ("backend", backend),

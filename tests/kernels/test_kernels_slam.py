@@ -91,12 +91,16 @@ def test_select_neighbours_matches_numpy(ti_runtime):
     travel = np.array([0.0, 3.0, 6.0, 9.0, 14.0, 20.0, 26.0, 30.0], np.float32)
     travel_arr = ti.ndarray(ti.f32, K)
     travel_arr.from_numpy(travel)
+    seq = np.array([8, 1, 2, 9, 4, 10, 6, 7], np.int32)  # slots 0, 3, 5 reused: newest
+    seq_arr = ti.ndarray(ti.i32, K)
+    seq_arr.from_numpy(seq)
     nb = ti.field(ti.i32, (n, 3))
     nb_loop = ti.field(ti.i32, (n, 3))
     up = np.array([0.0, 0.6, 0.8])
     min_cos = np.cos(np.deg2rad(100.0))
-    looping = slam.select_neighbours(n, K, keyframe_array(kf), q, t, travel_arr, 31.0, 10.0,
-                                     min_cos, up.astype(np.float32), 3.0, nb, nb_loop)
+    looping = slam.select_neighbours(n, K, keyframe_array(kf), q, t, travel_arr, seq_arr, 8,
+                                     31.0, 10.0, min_cos, up.astype(np.float32), 3.0, nb,
+                                     nb_loop)
     kf_t = pack(kf)[..., :3].astype(np.float64)
     d = kf_t - t.to_numpy()[:, None, :]
     d2 = np.where(np.abs(d @ up) <= 3.0, np.sum(d**2, axis=2), np.inf)
@@ -106,8 +110,9 @@ def test_select_neighbours_matches_numpy(ti_runtime):
     np.testing.assert_array_equal(nb.to_numpy(), want)
     facing = np.einsum("nka,na->nk", kf[:, :, :3, 0], cur[:, :3, 0])  # +x axes
     facing = np.take_along_axis(facing, np.maximum(want, 0), axis=1)
-    want_loop = (want >= 0) & (want < K - 3) & (31.0 - travel[want] > 10.0) & (facing >= min_cos)
-    old_enough = (want >= 0) & (want < K - 3) & (31.0 - travel[want] > 10.0)
+    not_newest = (want >= 0) & (seq[np.maximum(want, 0)] < 8)  # numbers 8, 9, 10 are newest
+    old_enough = not_newest & (31.0 - travel[want] > 10.0)
+    want_loop = old_enough & (facing >= min_cos)
     assert (old_enough & ~want_loop).any() and want_loop.any()  # the facing gate left some out
     np.testing.assert_array_equal(nb_loop.to_numpy(), want_loop.astype(np.int32))
     assert looping == int(want_loop.any(axis=1).sum())

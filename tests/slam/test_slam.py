@@ -327,8 +327,8 @@ def test_spread_draws_from_the_steps_gaussian_posterior(ti_runtime):
 
 
 def test_a_run_that_fills_every_keyframe_goes_on_and_says_so(forest_log, tmp_path, ti_runtime):
-    """A walk longer than keyframes.capacity allows keeps tracking against the keyframes it
-    has, with one warning naming the setting, instead of ending the run."""
+    """A walk longer than keyframes.capacity allows goes on, each new keyframe replacing a
+    kept one, with one warning naming the setting, instead of ending the run."""
     import json
 
     config = tmp_path / "small.yaml"
@@ -339,5 +339,6 @@ def test_a_run_that_fills_every_keyframe_goes_on_and_says_so(forest_log, tmp_pat
     assert result.exit_code == 0, result.output
     summary = json.loads((out / "slam_summary.json").read_text())
     assert summary["keyframes"] == 2 and summary["scans"] == 50
+    assert summary["keyframes_made"] > 2
     full = [w for w in summary["odometry_warnings"] if "keyframes.capacity" in w]
     assert len(full) == 1, summary["odometry_warnings"]

@@ -43,3 +43,33 @@ def test_slam_result_mcap_holds_every_channel(tmp_path, ti_runtime):
     paths = msgs["/trajectories"][-1].entities  # one per hypothesis, ending at its particle
     assert len(paths) >= 1 and len(paths[0].lines[0].points) == keyframes + 1
     assert len(cloud_array(msgs["/map"][0])["x"]) > 500
+
+
+def test_each_loop_is_published_once(tmp_path):
+    """/loops adds each scan's loops to the scene (no deletion, an entity per loop scan), so
+    a long run's result grows by its loops, not by their square."""
+    from test_frame_store import random_frame
+
+    from mcl3d.io.foxglove_results import ResultPublisher
+    from mcl3d.slam.result_view import SlamView
+
+    rng = np.random.default_rng(1)
+    frames = [random_frame(rng, i) for i in range(25)]  # loops on scans 3, 10, 17, 24
+    path = tmp_path / "result.mcap"
+    with ResultPublisher(path, name="test") as pub:
+        view = SlamView(pub)
+        for frame in frames:
+            view.publish_loops(frame)
+    loop_frames = [f for f in frames if f.loop_keyframes]
+    published = read_result(path)["/loops"]
+    assert len(published) == len(loop_frames) == 4
+    for n, (msg, frame) in enumerate(zip(published, loop_frames, strict=True)):
+        assert not msg.deletions and [e.id for e in msg.entities] == [f"loop {n}"]
+        points = msg.entities[0].lines[0].points
+        assert len(points) == 2 * len(frame.loop_keyframes)  # this scan's loops only
+        for k, T_rel in enumerate(frame.loop_relative):  # pose -> its loop keyframe
+            start, end = points[2 * k], points[2 * k + 1]
+            np.testing.assert_allclose([start.x, start.y, start.z],
+                                       frame.T_world_lidar[:3, 3], atol=1e-9)
+            T_kf = frame.T_world_lidar @ np.linalg.inv(T_rel)
+            np.testing.assert_allclose([end.x, end.y, end.z], T_kf[:3, 3], atol=1e-9)
