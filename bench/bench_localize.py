@@ -7,6 +7,10 @@ give up to 2x the wall time) plus the likelihood kernel's best time, warm, repea
 scan, and its throughput in particle*points/s. Warm means the map blocks that the scan touches
 are already in the cpu's L3 cache; inside an update (a new scan) the kernel runs cold, ~1.5x
 slower on 2 cpu cores, which the likelihood stage shows.
+A second table times global search (`--init global` on the same log: the coarse phase, then
+the accurate model with annealing, place evidence and mode-preserving resampling, all on the
+device): median stage ms, wall and process cpu of the accurate-model updates, the first of
+them (it compiles that model's kernels) untimed, at each N with the first M.
 The baseline, measured in the same run, is the NumPy-vectorised implementation of the same
 sensor model (mcl3d.localization.sensor_model.scan_log_likelihood_numpy) on a subset of the
 particles (its cost is linear in N); the table shows the Taichi/NumPy ratio. Also compares the
@@ -55,6 +59,58 @@ def first_scan(log: Path):
         stamps, poses = reader.ground_truth()
     k = int(np.argmin(np.abs(stamps - scan.stamp_ns)))
     return scan.points, poses[k]
+
+
+def scans_with_motion(log: Path, count: int):
+    """The first `count` scans with the ground-truth pose and stamp (s)."""
+    from mcl3d.io.logs.reader import LogReader
+
+    with LogReader(log) as reader:
+        stamps, poses = reader.ground_truth()
+        out = []
+        for scan in reader.scans():
+            out.append((scan.points, poses[int(np.argmin(np.abs(stamps - scan.stamp_ns)))],
+                        scan.stamp_ns * 1e-9))
+            if len(out) == count:
+                break
+    return out
+
+
+def global_case(tsdf, log: Path, n: int, m: int, updates: int) -> dict:
+    """Median stage ms, wall and process-cpu ms of global-search updates with the accurate
+    model (the defaults of `mcl3d localize --init global`, ground-truth motion); the coarse
+    phase and the first accurate update are not timed. Updates after convergence (tracking)
+    are left out and counted."""
+    import taichi as ti
+
+    from mcl3d.localization.localization_config import LocalizerConfig
+    from mcl3d.localization.localizer import Localizer
+    from mcl3d.localization.state import STAGES
+
+    cfg = LocalizerConfig.model_validate({"particles": n, "seed": 1, "sensor": {"points": m}})
+    loc = Localizer(tsdf, cfg)
+    loc.init_global()
+    untimed = cfg.sensor.coarse_scans + 1
+    rows, T_prev, converged = [], None, 0
+    for k, (points, T, stamp_s) in enumerate(scans_with_motion(log, untimed + updates)):
+        motion = None if T_prev is None else np.linalg.inv(T_prev) @ T
+        T_prev = T
+        ti.sync()
+        t0, c0 = time.perf_counter(), time.process_time()
+        r = loc.step(points, motion, stamp_s)
+        ti.sync()
+        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+        if k >= untimed and r.state.value == "converged":
+            converged += 1
+        elif k >= untimed:
+            rows.append((1e3 * wall, 1e3 * cpu, r.timings_ms))
+    def median(values) -> float:  # nan when the search converged before a timed update
+        values = list(values)
+        return statistics.median(values) if values else float("nan")
+
+    return {"N": n, "M": m, "searching_updates": len(rows), "converged_updates": converged,
+            "stage_ms": {s: median(r[2][s] for r in rows) for s in STAGES},
+            "update_ms": median(r[0] for r in rows), "update_cpu_ms": median(r[1] for r in rows)}
 
 
 def kernel_seconds(loc, pts, cache_block: bool, repeats: int) -> tuple[float, float]:
@@ -145,6 +201,8 @@ def main() -> None:
     ap.add_argument("--no-f16", action="store_true", help="skip the f16-map comparison")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--numpy-subset", type=int, default=5000)
+    ap.add_argument("--global-updates", type=int, default=8,
+                    help="accurate-model global-search updates timed per N")
     ap.add_argument("--json", type=Path, default=RESULTS / "bench_localize.json")
     args = ap.parse_args()
     if args.quick:
@@ -165,7 +223,7 @@ def main() -> None:
     ns = args.n or ([10_000, 100_000] if args.quick else [10_000, 100_000, 1_000_000])
     ms = args.m or ([256] if args.quick else [256, 512, 1024])
     results = {"backend": info.backend, "device": info.device, "log": str(log),
-               "map": str(map_path), "cases": [], "f16": []}
+               "map": str(map_path), "cases": [], "f16": [], "global": []}
     for f16 in (False,) if args.no_f16 else (False, True):
         tsdf = load_map(map_path, f16=f16)
         host = NumpyTsdf.of(tsdf)
@@ -180,6 +238,13 @@ def main() -> None:
                                                        "throughput_pp_per_s")}), flush=True)
                 partial.write_text(json.dumps(results, indent=2))  # a crash keeps the rows
         tsdf.destroy()
+    tsdf = load_map(map_path)
+    for n in ns:
+        results["global"].append(global_case(tsdf, log, n, ms[0], args.global_updates))
+        print(json.dumps({k: results["global"][-1][k] for k in ("N", "update_ms",
+                                                                  "update_cpu_ms")}), flush=True)
+        partial.write_text(json.dumps(results, indent=2))
+    tsdf.destroy()
     table = Table(title=f"MCL update on {info.backend} ({info.device})")
     for col in ("N", "M", "map", "motion", "likelihood", "weights", "estimate", "resample",
                 "update ms (cpu)", "kernel ms plain/cached", "pp/s", "NumPy ms", "x NumPy"):
@@ -195,6 +260,8 @@ def main() -> None:
                       f"{c['throughput_pp_per_s']:.2e}", f"{c['numpy_ms_extrapolated']:.0f}",
                       f"{c['ratio_taichi_vs_numpy']:.1f}")
     Console(width=max(Console().width, 160)).print(table)
+    for row in tables(results)["tables"][global_caption(results)]:
+        print(row)
     path = bench_run.write({**results, **tables(results)}, args.json)
     partial.unlink(missing_ok=True)
     print(f"wrote {path}")
@@ -215,13 +282,30 @@ def tables(results: dict) -> dict:
                      "particle·points/s": f"{c['throughput_pp_per_s']:.2e}",
                      "NumPy ms (extrapolated)": round(c["numpy_ms_extrapolated"]),
                      "× NumPy": round(c["ratio_taichi_vs_numpy"], 1)})
+    search = [{"N": f"{c['N']:,}", "M": c["M"],
+               "timed updates": f"{c['searching_updates']} (+{c['converged_updates']} "
+                                "converged, not timed)",
+               **{k: round(c["stage_ms"][k], 1) for k in ("motion", "likelihood", "weights",
+                                                          "estimate", "resample")},
+               "update ms": round(c["update_ms"], 1), "update cpu ms": round(c["update_cpu_ms"])}
+              for c in results["global"]]
     return {"tables": {f"MCL update on {results['backend']} ({results['device']}), median "
-                       "ms per stage": rows},
+                       "ms per stage": rows, global_caption(results): search},
             "notes": ["Particles spread 0.3 m / 0.1 rad around the true pose (tracking), "
                       "resampling forced every update; the kernel columns are the likelihood "
                       "alone, best of the repeats on one scan (warm), without and with the "
                       "coarse-block cache; NumPy: the vectorised reference of the same model "
-                      "on a subset of the particles, extrapolated to N."]}
+                      "on a subset of the particles, extrapolated to N.",
+                      "Global search: a global start (seed 1) on the same log with ground-truth "
+                      "motion; the coarse phase and the first accurate-model update (it "
+                      "compiles kernels) untimed; medians over the accurate-model updates "
+                      "before convergence. `likelihood` includes the annealing, `estimate` "
+                      "the place evidence, clustering and mode floor."]}
+
+
+def global_caption(results: dict) -> str:
+    return (f"Global search update (accurate model) on {results['backend']} "
+            f"({results['device']}), median ms per stage")
 
 
 if __name__ == "__main__":

@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from bench_localize import ensure_data
+from bench_localize import ensure_data, scans_with_motion
 from results_io import Run
 
 GLOBAL_UPDATES, GLOBAL_COARSE_SCANS = 7, 2
@@ -123,21 +123,6 @@ class TransferCounter:
                 counter.traffic.add("kernel_return", 0, np.asarray(out).nbytes or 4)
             return out
         return wrapped
-
-
-def scans_with_motion(log: Path, count: int):
-    """The first `count` scans with the ground-truth motion since the previous one."""
-    from mcl3d.io.logs.reader import LogReader
-
-    with LogReader(log) as reader:
-        stamps, poses = reader.ground_truth()
-        out = []
-        for scan in reader.scans():
-            out.append((scan.points, poses[int(np.argmin(np.abs(stamps - scan.stamp_ns)))],
-                        scan.stamp_ns * 1e-9))
-            if len(out) == count:
-                break
-    return out
 
 
 def run_case(tsdf, scans, n: int, mode: str, counter: TransferCounter) -> dict:

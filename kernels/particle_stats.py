@@ -24,18 +24,14 @@ _XI, _XJ = zip(*[(i, j) for i in range(6) for j in range(i, 6)], strict=True)
 
 
 @ti.kernel
-def tempered_max(log_w: ti.template(), inc: ti.template(), n: ti.i32, coef: ti.f32) -> ti.f32:
-    """max over i < n of log_w[i] + coef * inc[i]."""
-    m = -3.0e38
+def tempered_sums(log_w: ti.template(), inc: ti.template(), n: ti.i32, coef: ti.f32,
+                  partial: ti.template(), sums: ti.template()):
+    """sums = (sum w, sum w^2) of w = exp(log_w + coef * inc - shift), shift the largest
+    exponent, summed per block then over the blocks in order: one launch per candidate
+    tempering of the annealing's bisection."""
+    shift = -3.0e38
     for i in range(n):
-        ti.atomic_max(m, log_w[i] + coef * inc[i])
-    return m
-
-
-@ti.kernel
-def tempered_partials(log_w: ti.template(), inc: ti.template(), n: ti.i32, coef: ti.f32,
-                      shift: ti.f32, partial: ti.template()):
-    """partial[b] = (sum w, sum w^2) over block b of w = exp(log_w + coef * inc - shift)."""
+        ti.atomic_max(shift, log_w[i] + coef * inc[i])
     for b in range((n + SCAN_BLOCK - 1) // SCAN_BLOCK):
         s = 0.0
         s2 = 0.0
@@ -44,6 +40,14 @@ def tempered_partials(log_w: ti.template(), inc: ti.template(), n: ti.i32, coef:
             s += wk
             s2 += wk * wk
         partial[b] = ti.math.vec2(s, s2)
+    for _ in range(1):
+        s = 0.0
+        s2 = 0.0
+        for b in range((n + SCAN_BLOCK - 1) // SCAN_BLOCK):
+            s += partial[b][0]
+            s2 += partial[b][1]
+        sums[0] = s
+        sums[1] = s2
 
 
 @ti.kernel

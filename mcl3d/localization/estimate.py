@@ -56,7 +56,14 @@ def _angle_to(q_xyzw: np.ndarray, q_ref: np.ndarray) -> np.ndarray:
 def _cluster_seed(positions: np.ndarray, weights: np.ndarray, radius_m: float) -> int:
     """Index of the heaviest particle inside the heaviest position cell."""
     keys = np.floor(positions / radius_m).astype(np.int64)
-    _, cell = np.unique(keys, axis=0, return_inverse=True)
+    keys -= keys.min(axis=0)
+    span = keys.max(axis=0) + 1
+    if float(np.prod(span.astype(np.float64))) < 2.0 ** 62:
+        # one int64 per cell, in the rows' lexicographic order: the same cells, ~20x faster
+        code = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
+        cell = np.unique(code, return_inverse=True)[1]
+    else:
+        cell = np.unique(keys, axis=0, return_inverse=True)[1]
     cell = cell.ravel()
     cell_weight = np.bincount(cell, weights=weights)
     in_best = np.flatnonzero(cell == np.argmax(cell_weight))

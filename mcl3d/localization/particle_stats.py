@@ -51,10 +51,8 @@ def cloud_stats(p: ParticleSet, total_weight: float) -> CloudStats:
 def tempered_ess(p: ParticleSet, coef: float) -> float:
     """ESS of the weights exp(log_w + coef * ll_mean) (annealing's candidate tempering)."""
     n = p.n
-    shift = ks.tempered_max(p.log_w, p.ll_mean, n, coef)
-    ks.tempered_partials(p.log_w, p.ll_mean, n, coef, shift, p.partial_sums)
-    kr.sum_partials(p.partial_sums, n, p.sums)
-    s1, s2 = float(p.sums[0]), float(p.sums[1])
+    ks.tempered_sums(p.log_w, p.ll_mean, n, coef, p.partial_sums, p.sums)
+    s1, s2 = p.sums.to_numpy().astype(np.float64)
     return s1 * s1 / max(s2, MIN_WEIGHT_SQUARES)
 
 
