@@ -151,6 +151,7 @@ def test_two_jobs_on_ray_equal_the_same_runs_one_after_the_other(data, tmp_path,
     assert loc["success"] is True and loc["converged"] and loc["ate_m"] < 0.1
     assert loc["seed"] == 1 and loc["particles"] == 1500 and loc["scans"] == SCANS
     assert odo["ate_m"] < 0.1 and odo["rpe_m"] is not None and odo["rpe_m"] < 0.1
+    assert odo["drift_percent"] is not None
     assert rows[0]["ate_m"] != rows[1]["ate_m"]  # the seeds differ, so do the runs
 
     csv_lines = (out / "results.csv").read_text().splitlines()
@@ -168,25 +169,21 @@ def test_a_run_that_stops_on_bad_input_is_a_failed_row_not_retried(data, tmp_pat
     manifest = write_manifest(data / "mixed.yaml", """
 jobs:
   - {name: empty, command: odometry, log: empty.mcap}
-  - {name: odo, command: odometry, log: room.mcap, config: {use_imu: false}}
   - {name: map, command: build-map, log: room.mcap, config: {voxel_size_m: 0.2}}
 """)
     progress = []
     result = run(BatchRequest(manifest, tmp_path / "out", backend="cpu", retries=2),
                  progress.append)
-    empty, odo, built = result.rows
+    empty, built = result.rows
     assert empty["status"] == "failed" and empty["attempts"] == 1
     assert "empty.mcap" in empty["error"] and "\n" not in empty["error"]
     assert not (tmp_path / "out" / "empty" / "run").exists()  # nothing half-written
     assert built["status"] == "ok" and built["scans"] == SCANS and built["map_bytes"] > 0
     assert (tmp_path / "out" / "map" / "run" / "map.tsdf").is_file()
-    assert odo["status"] == "ok" and odo["scans"] == SCANS and odo["ate_m"] < 0.1
-    assert odo["rpe_m"] < 0.1 and odo["drift_percent"] is not None
-    assert sorted(p.status for p in progress) == ["empty/run failed", "map/run ok",
-                                                  "odo/run ok"]
-    assert [p.done for p in progress] == [1, 2, 3] and progress[0].total == 3
+    assert sorted(p.status for p in progress) == ["empty/run failed", "map/run ok"]
+    assert [p.done for p in progress] == [1, 2] and progress[0].total == 2
     assert result.failed == 1
-    assert [p.name for p in result.pictures] == ["ate_per_log.png"]  # no success to plot
+    assert result.pictures == []  # no success and no ATE to plot
     lines = result.outputs.csv.read_text().splitlines()
     assert lines[1].startswith("empty,run,odometry,") and ",failed," in lines[1]
 
