@@ -112,8 +112,10 @@ def build_map(
         "--truncation", help="Truncation distance in m [default: 4 voxels].",
         show_default=False)] = None,
     normals: Annotated[str | None, typer.Option(
-        "--normals", help="Scans: knn (point-to-plane distances, accurate) or none "
-                          "(projective, faster) [default: knn].", show_default=False)] = None,
+        "--normals", help="Scans: point-to-plane distances from normals of the range image "
+                          "on the device (auto; scans without rings: knn), of the k nearest "
+                          "neighbours on the host (knn), or none (projective) [default: "
+                          "auto].", show_default=False)] = None,
     max_range: Annotated[float | None, typer.Option(
         "--max-range", help="Ignore scan points farther than this (m) [default: 120].",
         show_default=False)] = None,

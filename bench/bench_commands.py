@@ -103,15 +103,16 @@ def read_csv(path: Path) -> dict[str, np.ndarray]:
 
 
 def stage_rows(command: str, per_scan: dict[str, np.ndarray], whole: dict, n_scans: int,
-               start_s: float) -> list[dict]:
-    """Mean warm ms per scan of each stage, the step's total, and what the command spent
-    outside its steps (start, decoding, outputs), amortized per scan."""
-    rows = [{"command": command, "stage": name, "ms per scan": round(float(v[SKIP_SCANS:]
-                                                                              .mean()), 1)}
+               start_s: float, warm: np.ndarray | None = None) -> list[dict]:
+    """Mean warm ms per scan of each stage (`warm`: a mask of the scans to average, default
+    all but the first SKIP_SCANS), the step's total, and what the command spent outside its
+    steps (start, decoding, outputs), amortized per scan."""
+    warm = np.arange(n_scans) >= SKIP_SCANS if warm is None else warm
+    rows = [{"command": command, "stage": name, "ms per scan": round(float(v[warm].mean()), 1)}
             for name, v in per_scan.items()]
     total_ms = sum(v for v in per_scan.values())
     rows.append({"command": command, "stage": "= the step (warm mean)",
-                 "ms per scan": round(float(total_ms[SKIP_SCANS:].mean()), 1)})
+                 "ms per scan": round(float(total_ms[warm].mean()), 1)})
     outside = (whole["wall_s"] - total_ms.sum() / 1e3) / n_scans * 1e3
     rows.append({"command": command, "stage": f"outside the steps (of it start {start_s:.1f} s)",
                  "ms per scan": round(outside, 1)})
@@ -126,6 +127,9 @@ def simulate(folder: Path, world: str, duration_s: float, env: dict) -> Path:
     return log
 
 
+NORMALS = "normals (range image on the device; host KNN without rings)"
+
+
 def build_map_stages(log: Path, out: Path) -> tuple[dict[str, float], int, float]:
     """`build-map` in this process with timers around its stages: ms per scan of each, the
     scans, and the build's seconds (without imports and start)."""
@@ -134,7 +138,7 @@ def build_map_stages(log: Path, out: Path) -> tuple[dict[str, float], int, float
     from mcl3d.mapping import pipeline
     from mcl3d.maps import build
 
-    spent = {"pass 1: bounds (decode + transform)": 0.0, "normals (host KNN)": 0.0,
+    spent = {"pass 1: bounds (decode + transform)": 0.0, NORMALS: 0.0,
              "host preparation": 0.0, "allocate kernel": 0.0, "band + carving kernel": 0.0,
              "write the map": 0.0}
 
@@ -151,7 +155,7 @@ def build_map_stages(log: Path, out: Path) -> tuple[dict[str, float], int, float
 
     patches = [(pipeline, "_scan_bounds", "pass 1: bounds (decode + transform)", False),
                (pipeline, "_write", "write the map", False),
-               (build, "oriented_normals", "normals (host KNN)", False),
+               (build.ScanFuser, "normals", NORMALS, True),
                (build.ScanFuser, "prepare", "host preparation", False),
                (build.ScanFuser, "allocate", "allocate kernel", True),
                (build.ScanFuser, "update", "band + carving kernel", True)]
@@ -165,11 +169,11 @@ def build_map_stages(log: Path, out: Path) -> tuple[dict[str, float], int, float
     finally:
         for owner, name, fn in saved:
             setattr(owner, name, fn)
-    spent["host preparation"] -= spent["normals (host KNN)"]  # normals run inside prepare
-    fuse = spent["host preparation"] + spent["normals (host KNN)"] + spent["allocate kernel"] \
+    spent["host preparation"] -= spent[NORMALS]  # normals run inside prepare
+    fuse = spent["host preparation"] + spent[NORMALS] + spent["allocate kernel"] \
         + spent["band + carving kernel"]
-    spent["pass 2: decode, poses, finalize (the rest)"] = (seconds - fuse - spent["write the map"]
-                                              - spent["pass 1: bounds (decode + transform)"])
+    spent["the rest: poses, new map, kernel preparation, finalize"] = (
+        seconds - fuse - spent["write the map"] - spent["pass 1: bounds (decode + transform)"])
     n = result.n_scans
     return {k: v / n * 1e3 for k, v in spent.items()}, n, seconds
 
@@ -205,21 +209,41 @@ def bench_localize(folder, world, log, tsdf, init, args, env, start_s):
                          "--force"], folder / f"{world}_localize_{init}.txt", env)
     scans = read_csv(out / "scans.csv")
     per_scan = {s: scans[f"ms_{s}"] for s in LOC_STAGES}
-    n = len(scans["ms_total"])
-    warm = float(scans["ms_total"][SKIP_SCANS:].mean())
+    total = scans["ms_total"]
+    n = len(total)
+    warm = localize_warm(n, init)
+    searching = warm & (scans["state"] != "converged")
+    mean = float(total[warm].mean())
+    judged = float(total[searching].mean()) if init == "global" and searching.any() else mean
     name = f"localize {'global' if init == 'global' else 'tracking'}"
+    measured = f"{mean:.0f} ms per update" + (
+        f"; {judged:.0f} while searching ({int(searching.sum())} updates)"
+        if init == "global" else "")
     row = {"command": name, "world": world, "scans": n,
            "whole command s": round(whole["wall_s"], 1),
            "per scan ms": round(whole["wall_s"] / n * 1e3, 1),
-           "measured": f"{warm:.0f} ms per update", "target": TARGETS["localize"],
-           "pass": "pass" if warm <= 100 else "FAIL"}
+           "measured": measured, "target": TARGETS["localize"],
+           "pass": "pass" if max(mean, judged) <= 100 else "FAIL"}
     summary = json.loads((out / "summary.json").read_text())
-    extra = {"whole": whole, "ms_update_mean": warm,
-             "ms_update_p50": float(np.median(scans["ms_total"][SKIP_SCANS:])),
-             "ms_update_p90": float(np.percentile(scans["ms_total"][SKIP_SCANS:], 90)),
+    extra = {"whole": whole, "ms_update_mean": mean, "ms_update_searching_mean": judged,
+             "ms_update_p50": float(np.median(total[warm])),
+             "ms_update_p90": float(np.percentile(total[warm], 90)),
              "converged_fraction": summary.get("converged_fraction"),
              "ate_all": summary.get("ate_all")}
-    return row, stage_rows(f"{name} ({world})", per_scan, whole, n, start_s), extra
+    return row, stage_rows(f"{name} ({world})", per_scan, whole, n, start_s, warm), extra
+
+
+def localize_warm(n_scans: int, init: str) -> np.ndarray:
+    """The updates that compile no kernel: not the first SKIP_SCANS, and in a global search
+    not the first SKIP_SCANS of the accurate model after the coarse phase either (each
+    compiles that model's kernels for one of the two particle buffers)."""
+    from mcl3d.localization.localization_config import LocalizerConfig
+
+    warm = np.arange(n_scans) >= SKIP_SCANS
+    if init == "global":
+        coarse = LocalizerConfig().sensor.coarse_scans
+        warm[coarse:coarse + SKIP_SCANS] = False
+    return warm
 
 
 # ------------------------------------------------------------------------- odometry
@@ -415,7 +439,9 @@ def main() -> None:
              f"{args.slam_particles:,} particles.",
              f"Whole command: wall time of `python -m mcl3d ...` from start to exit, {start_s:.1f}"
              " s of it the start (imports, Taichi start). Per-update and per-frame figures are "
-             f"means over the warm scans (the first {SKIP_SCANS} compile kernels).",
+             f"means over the warm scans (the first {SKIP_SCANS} compile kernels, and in a "
+             f"global search the first {SKIP_SCANS} of the accurate model); localize global "
+             "passes when its updates while searching (not yet converged) do too.",
              "Odometry: the step timed in this process, interleaved frame by frame with "
              f"KISS-ICP on the same decoded scans, median over frames of {args.repeats} "
              "pass(es); the command's own per-scan time is in its stage rows."]

@@ -2,11 +2,12 @@
 
 1. The whole job a user waits for, scan by scan from a log, as `mcl3d build-map LOG` does it
    (mcl3d/mapping/pipeline.py, calling the same functions): decode the scan, interpolate its
-   start and end poses from the trajectory (per-point times), estimate and orient normals
-   (maps/normals.py, Open3D's KNN on the host), fuse (`ScanFuser.fuse`: deskew inside the
-   kernels, point-to-plane band, free-space carving). build-map also reads every scan once
-   before (pass 1, the map's bounds): timed per scan and added to mcl3d's total. Also mcl3d's
-   projective mode (`normals: none`, no normals needed).
+   start and end poses from the trajectory (per-point times), estimate normals facing the
+   sensor (default: from the scan's range image on the device, maps/scan_normals.py; before:
+   Open3D's KNN on the host, maps/normals.py, timed side by side), fuse (`ScanFuser.fuse`:
+   deskew inside the kernels, point-to-plane band, free-space carving). build-map also reads
+   every scan once before (pass 1, the map's bounds): timed per scan and added to mcl3d's
+   total. Also mcl3d's projective mode (`normals: none`, no normals needed).
    Open3D end to end on the same decoded scans and poses: the scan deskewed into its start
    pose on the host (mcl3d's deskew kernel, the same motion: Open3D has none), projected into
    4 pinhole depth images (90° each, Open3D's `project_to_depth_image`), then its tensor
@@ -14,12 +15,13 @@
    image: blocks from every 4th pixel of every 4th row (Open3D's way, fast, it misses sparse
    and far surfaces), or from every point (its point-cloud overload, as our fusion does).
    Projective TSDF integration needs no normals, so Open3D's total has none.
-   Inputs: a simulated 10 Hz log (office world, OS1-64, handheld path with motion, seed 1,
-   `mcl3d simulate`) and the real Ouster OS1-128 capture in ../shared/data (3 scans at
-   2.5 m/s, poses from the SDK's KITTI file, a 4th pose extrapolated so the last sweep
-   deskews too). Each method builds one map over the whole log, scans interleaved between
-   methods (a warm-up on the first scans, compile time excluded), `--repeats` passes; per
-   stage the median ms per scan, wall and process cpu time (all threads).
+   Inputs: a simulated 10 Hz log (default office world, OS1-64, handheld path with motion,
+   seed 1, `mcl3d simulate`; --world, --sensor choose others) and the real Ouster OS1-128
+   capture in ../shared/data (3 scans at 2.5 m/s, poses from the SDK's KITTI file, a 4th
+   pose extrapolated so the last sweep deskews too). Each method builds one map over the
+   whole log, scans interleaved between methods (a warm-up on the first scans, compile time
+   excluded), `--repeats` passes; per stage the median ms per scan, wall and process cpu
+   time (all threads).
    Quality of each finished map, its surface extracted the same way for both (Open3D's
    marching cubes): distance of the surface vertices to the world mesh (simulated log), to
    the nearest deskewed scan point, and the share of scan points within one voxel of the
@@ -28,7 +30,7 @@
    block (f32 while building, f32 and f16 read-only), total, against a dense grid.
 
     python bench/bench_tsdf_fusion.py --backend cpu     # -> bench/results/bench_tsdf_fusion.json
-    python bench/bench_tsdf_fusion.py --quick
+    python bench/bench_tsdf_fusion.py --quick [--world forest --sensor vlp16]
 """
 
 from __future__ import annotations
@@ -76,6 +78,7 @@ class LogScans:
                                        config=self.config, trajectory=trajectory)
         self.shared = {"decode": [], "poses": []}
         self.scans = []
+        self.rings = []  # each scan's ring numbers (None without): range-image normals
         with LogReader(log) as reader:
             self.traj = (read_trajectory(trajectory) if trajectory
                          else pipeline._poses(req, reader)[0])
@@ -89,6 +92,7 @@ class LogScans:
                 pose, w, c = _timed(lambda cloud=cloud: pipeline._scan_pose(self.traj, cloud))
                 self.shared["poses"].append((w, c))
                 self.scans.append((cloud.points, *pose))
+                self.rings.append(cloud.fields.get("ring"))
         n = len(self.scans)
         self.pass1 = [(wall / n, cpu / n)] * n
         cfg = self.config
@@ -116,11 +120,12 @@ def to_world(points, T_a, T_b, alpha):
     return p @ T_a[:3, :3].T + T_a[:3, 3]
 
 
-def simulated_log(folder: Path, duration_s: float) -> tuple[Path, Path]:
-    """A 10 Hz office log (OS1-64, handheld, seed 1) and the world's mesh."""
-    log, mesh = folder / "office.mcap", folder / "office_mesh.ply"
-    cmd = [sys.executable, "-m", "mcl3d", "simulate", "office", "-o", str(log), "--sensor",
-           "os1-64", "--trajectory", "handheld", "--duration", f"{duration_s:g}", "--seed", "1",
+def simulated_log(folder: Path, duration_s: float, world: str, sensor: str
+                  ) -> tuple[Path, Path]:
+    """A 10 Hz log (handheld, seed 1) and the world's mesh."""
+    log, mesh = folder / f"{world}.mcap", folder / f"{world}_mesh.ply"
+    cmd = [sys.executable, "-m", "mcl3d", "simulate", world, "-o", str(log), "--sensor",
+           sensor, "--trajectory", "handheld", "--duration", f"{duration_s:g}", "--seed", "1",
            "--export-mesh", str(mesh), "--force"]
     subprocess.run(cmd, check=True, capture_output=True)
     return log, mesh
@@ -152,7 +157,8 @@ def ouster_trajectory(folder: Path) -> Path | None:
 
 # ------------------------------------------------------------------------ methods
 class Ours:
-    """`build-map`'s per-scan work: normals (knn mode), then `ScanFuser.fuse`."""
+    """`build-map`'s per-scan work: normals (auto: range image on the device; knn: host),
+    then `ScanFuser.fuse`."""
 
     def __init__(self, scans: LogScans, normals: str):
         from mcl3d.maps.build import ScanFuser, new_map
@@ -176,14 +182,12 @@ class Ours:
         self.sync()
 
     def scan(self, i) -> dict:
-        from mcl3d.maps.build import SENSOR_ORIGIN, oriented_normals
-
         points, T_a, T_b, alpha = self.scans.scans[i]
         out, normals = {}, None
-        if self.cfg.normals == "knn":
+        if self.cfg.normals != "none":
             pts = np.ascontiguousarray(points, dtype=np.float32).reshape(-1, 3)
-            normals, *out["normals"] = _timed(lambda: oriented_normals(
-                pts, self.cfg.normal_neighbors, SENSOR_ORIGIN, self.cfg.orientation_cell_m))
+            normals, *out["normals"] = _timed(
+                lambda: self.fuser.normals(pts, self.scans.rings[i]), self.sync)
         _, *out["fuse (deskew in kernel)"] = _timed(
             lambda: self.fuser.fuse(points, T_a, T_b, alpha, normals_l=normals), self.sync)
         return out
@@ -393,7 +397,8 @@ def quality_rows(scans: LogScans, methods: dict, mesh_path: Path | None) -> list
 
 
 def fusion(scans: LogScans, repeats: int, columns: int, beams: int, mesh=None):
-    methods = {"mcl3d point-to-plane (default)": Ours(scans, "knn"),
+    methods = {"mcl3d point-to-plane, range-image normals (default)": Ours(scans, "auto"),
+               "mcl3d point-to-plane, host KNN normals (before)": Ours(scans, "knn"),
                "mcl3d projective (normals: none)": Ours(scans, "none"),
                "Open3D (its block allocation)": Open3D(scans, False, columns, beams),
                "Open3D (blocks from every point)": Open3D(scans, True, columns, beams)}
@@ -457,6 +462,8 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3, help="passes over each log")
     parser.add_argument("--duration", type=float, default=5.0,
                         help="seconds of the simulated 10 Hz log")
+    parser.add_argument("--world", default="office", help="simulated world (mcl3d simulate)")
+    parser.add_argument("--sensor", default="os1-64", help="simulated lidar (mcl3d simulate)")
     parser.add_argument("--skip-memory", action="store_true", help="fusion timings only")
     parser.add_argument("--out", type=Path, default=None,
                         help="JSON path (default bench/results/bench_tsdf_fusion.json)")
@@ -475,9 +482,10 @@ def main() -> None:
     tables, notes, stage_all, ratio_all, quality_all = {}, [], [], [], []
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
-        log, mesh = simulated_log(folder, args.duration)
-        inputs = [(LogScans(f"simulated office, OS1-64, {args.duration:g} s at 10 Hz", log),
-                   1024, 64, mesh)]
+        log, mesh = simulated_log(folder, args.duration, args.world, args.sensor)
+        columns, beams = (1800, 16) if args.sensor == "vlp16" else (1024, 64)
+        inputs = [(LogScans(f"simulated {args.world}, {args.sensor}, {args.duration:g} s at "
+                            "10 Hz", log), columns, beams, mesh)]
         traj = None if args.quick else ouster_trajectory(folder)
         if traj is not None:
             inputs.append((LogScans("Ouster OS1-128 capture (real, 3 scans)",
@@ -511,8 +519,10 @@ def main() -> None:
         "mcl3d deskews inside its fusion kernels (each point at its time between the scan's "
         "start and end poses); Open3D takes one pose per depth image, so its scan is deskewed "
         "on the host first (mcl3d's kernel, counted in Open3D's total).",
-        "The normals stage is Open3D's KNN normal estimation (k = 12) plus orientation "
-        "towards the sensor; Open3D's projective integration needs none.",
+        "The normals stage: by default from the scan's range image on the device (ring x "
+        "azimuth, PCA over the neighbouring pixels); before: Open3D's KNN normal estimation "
+        "(k = 12) on the host; both face the sensor. Open3D's projective integration needs "
+        "none.",
         "pass 1 is build-map's first read of the log (the map's bounds), per scan; Open3D's "
         "hash map needs no bounds.",
     ]

@@ -16,16 +16,15 @@ import numpy as np
 import open3d as o3d
 import taichi as ti
 from pydantic import Field, model_validator
-from scipy.spatial import cKDTree
 
 from mcl3d.core import runtime
 from mcl3d.core.config import Section
 from mcl3d.core.errors import MapError, PointCloudError
 from mcl3d.core.geometry import rot_to_quat
-from mcl3d.core.progress import Progress, ProgressCallback, report
 from mcl3d.kernels import tsdf_fusion
 from mcl3d.maps.normals import oriented_normals
-from mcl3d.maps.sparse_cells import CellLookup, dilate_cells, tiles_of
+from mcl3d.maps.scan_normals import RangeImageNormals, layout
+from mcl3d.maps.sparse_cells import cell_keys, tiles_of
 from mcl3d.maps.tsdf import BLOCK, CHUNK_CELLS, MIN_BUILD_TILES, MapGeometry, TsdfMap
 
 TRUNCATION_VOXELS = 4
@@ -33,8 +32,6 @@ CPU_RUN_LENGTH = 64
 GPU_RUN_LENGTH = 4
 PERCENTILE_SAMPLES = 8192
 SENSOR_ORIGIN = np.zeros((1, 3))  # a scan's normals face the sensor
-FUSE_POINTS_STAGE = "fuse points"
-FREE_STAGE = "mark free space"
 
 
 class BuildConfig(Section):
@@ -49,10 +46,17 @@ class BuildConfig(Section):
         1 << 20, ge=1, description="the pool grows up to this many blocks, then fails")
     min_range_m: float = Field(0.3, ge=0.0, description="scan points closer are ignored")
     max_range_m: float = Field(120.0, gt=0.0, description="scan points farther are ignored")
-    normals: str = Field("knn", pattern="^(knn|none)$",
-                         description="knn: point-to-plane distances from estimated normals; "
-                                     "none: projective distance along rays (faster)")
+    normals: str = Field("auto", pattern="^(auto|knn|none)$",
+                         description="point-to-plane distances from normals estimated on the "
+                                     "device from a scan's range image (auto: scans with "
+                                     "rings, others as knn), or on the host from the k "
+                                     "nearest neighbours (knn); none: projective distance "
+                                     "along rays")
     normal_neighbors: int = Field(12, ge=4, le=64, description="neighbours for normals")
+    scan_cache_mb: int = Field(
+        512, ge=0, description="a log's decoded scans kept in memory between the pass that "
+                               "finds the map's bounds and the fusion pass, so the log is "
+                               "decoded once; a larger log is decoded twice")
     orientation_cell_m: float = Field(
         0.3, gt=0.0, description="point-cloud maps without viewpoints: one representative "
                                  "per cell of this edge carries the orientation (maps/normals)")
@@ -161,6 +165,7 @@ class ScanFuser:
         self.n_scans = 0
         self.n_points = 0
         self._rays = None  # (ray_p, ray_n): vec4 per point, see tsdf_fusion.scan_allocate
+        self._range_normals = RangeImageNormals()
 
     def _ray_buffers(self, n: int):
         """Device arrays for the rays of n points: allocated once, regrown (to a power of
@@ -172,13 +177,15 @@ class ScanFuser:
         return self._rays
 
     def fuse(self, points_l: np.ndarray, T_start: np.ndarray, T_end: np.ndarray | None = None,
-             alpha: np.ndarray | None = None, normals_l: np.ndarray | None = None) -> None:
+             alpha: np.ndarray | None = None, normals_l: np.ndarray | None = None,
+             rings: np.ndarray | None = None) -> None:
         """Fuse one scan given in the lidar frame.
 
         `alpha` in [0, 1] per point places it between the poses T_start and T_end
-        (deskewing); without it every point uses T_start.
+        (deskewing); without it every point uses T_start. `rings` (each point's laser) let
+        the normals come from the scan's range image on the device.
         """
-        scan = self.prepare(points_l, T_start, T_end, alpha, normals_l)
+        scan = self.prepare(points_l, T_start, T_end, alpha, normals_l, rings)
         if scan is None:
             return
         for part in scan.chunks():
@@ -189,17 +196,17 @@ class ScanFuser:
 
     def prepare(self, points_l: np.ndarray, T_start: np.ndarray,
                 T_end: np.ndarray | None = None, alpha: np.ndarray | None = None,
-                normals_l: np.ndarray | None = None) -> PreparedScan | None:
+                normals_l: np.ndarray | None = None, rings: np.ndarray | None = None
+                ) -> PreparedScan | None:
         """The scan as the kernels take it (None for an empty scan); arguments as `fuse`."""
         pts = np.ascontiguousarray(points_l, dtype=np.float32).reshape(-1, 3)
         n = len(pts)
         if n == 0:
             return None
         cfg = self.config
-        use_normals = cfg.normals == "knn"
+        use_normals = cfg.normals != "none"
         if use_normals and normals_l is None:
-            normals_l = oriented_normals(pts, cfg.normal_neighbors, SENSOR_ORIGIN,
-                                         cfg.orientation_cell_m)
+            normals_l = self.normals(pts, rings)
         nrm = (np.ascontiguousarray(normals_l, dtype=np.float32) if use_normals
                else np.zeros_like(pts))
         T_end = T_start if T_end is None else T_end
@@ -215,6 +222,16 @@ class ScanFuser:
                 cfg.min_range_m, cfg.max_range_m, spacing, min(cfg.behind_m, cfg.trunc_m),
                 use_normals)
         return PreparedScan(pts, nrm, a, args)
+
+    def normals(self, points_l: np.ndarray, rings: np.ndarray | None) -> np.ndarray:
+        """Unit normals facing the sensor (zeros: none found, that point fuses
+        projectively): from the range image on the device when the scan has one (normals
+        auto), else from the k nearest neighbours on the host."""
+        shape = layout(points_l, rings) if self.config.normals == "auto" else None
+        if shape is not None:
+            return self._range_normals(points_l, rings, shape)
+        return oriented_normals(points_l, self.config.normal_neighbors, SENSOR_ORIGIN,
+                                self.config.orientation_cell_m)
 
     def allocate(self, scan: PreparedScan) -> None:
         """Pass 1: allocate (and initialize) the blocks the scan's bands reach, and claim the
@@ -271,104 +288,6 @@ def ray_spacing_rad(points_l: np.ndarray) -> float:
     lo, hi = np.percentile(sin_el, [1, 99])
     solid_angle = 2 * np.pi * max(hi - lo, 1e-3)
     return float(np.sqrt(solid_angle / n_ok))
-
-
-# ---------------------------------------------------------------- free-space blocks
-def _candidate_cells(tsdf: TsdfMap, margin_m: float) -> np.ndarray:
-    """Unallocated cells within margin of an allocated block, as (k, 3) coordinates (a
-    sparse dilation: never a grid over the bounds)."""
-    cells, values = tsdf.coarse_cells()
-    r = int(np.ceil(margin_m / tsdf.geometry.block_size_m))
-    near = dilate_cells(cells[values >= 0], r, tsdf.coarse_dims)
-    return near[CellLookup(cells, values, tsdf.coarse_dims)(near) < 0]
-
-
-def _cell_centers(tsdf: TsdfMap, cells: np.ndarray) -> np.ndarray:
-    g = tsdf.geometry
-    return np.asarray(g.origin_m) + (cells + 0.5) * g.block_size_m
-
-
-# ------------------------------------------------------------------- point clouds
-def _cube_blocks(geometry: MapGeometry, pts: np.ndarray, radius_vox: int) -> int:
-    """How many blocks the cubes of radius_vox voxels around the points touch.
-
-    Samples at most a block apart across each cube name every block it touches: counted
-    on the host so the pool is sized once.
-    """
-    g = np.floor((pts - np.asarray(geometry.origin_m)) / geometry.voxel_size_m).astype(np.int64)
-    steps = np.unique(np.round(np.linspace(-radius_vox, radius_vox,
-                                           int(np.ceil(2 * radius_vox / BLOCK)) + 1)))
-    dims = np.asarray(geometry.coarse_dims)
-    cells = set()
-    for dx in steps:
-        for dy in steps:
-            for dz in steps:
-                c = (g + np.array([dx, dy, dz], dtype=np.int64)) >> 3
-                c = np.clip(c, 0, dims - 1)
-                cells.update(np.unique((c[:, 0] * dims[1] + c[:, 1]) * dims[2] + c[:, 2]))
-    return len(cells)
-
-
-def build_from_points(points: np.ndarray, config: BuildConfig, *,
-                      normals: np.ndarray | None = None,
-                      viewpoints: np.ndarray | None = None,
-                      on_progress: ProgressCallback | None = None) -> TsdfMap:
-    """Signed distance from an oriented point cloud (map frame), fused in Taichi.
-
-    Without `normals` they are estimated and oriented (maps/normals.py: towards the
-    viewpoints, else consistently over the map).
-
-    Each point's tangent plane writes point-to-plane distances into voxels within the
-    truncation (weighted by distance along the plane); then blocks farther than the
-    truncation from every point, on the normals' side, within free_margin_m, become FREE.
-    """
-    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    pts = pts[np.isfinite(pts).all(axis=1)]
-    if len(pts) < config.normal_neighbors:
-        raise PointCloudError(f"the point cloud has {len(pts)} valid points; at least "
-                              f"{config.normal_neighbors} are needed to estimate normals")
-    if normals is None:
-        normals = oriented_normals(pts, config.normal_neighbors, viewpoints,
-                                   config.orientation_cell_m,
-                                   lambda name: report(on_progress, Progress(name, 0, 1)))
-    nrm = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
-    if len(nrm) != len(pts):
-        raise PointCloudError(f"{len(nrm)} normals for {len(pts)} points")
-    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
-    trunc = config.trunc_m
-    geometry = MapGeometry.around(pts.min(axis=0), pts.max(axis=0), config.voxel_size_m,
-                                  trunc, margin_m=trunc + config.free_margin_m)
-    radius = int(np.ceil(trunc / config.voxel_size_m))
-    pts32 = np.ascontiguousarray(pts, dtype=np.float32)
-    nrm32 = np.ascontiguousarray(nrm, dtype=np.float32)
-    tsdf = new_map(geometry, config, _cube_blocks(geometry, pts, radius))
-
-    def allocate():
-        for s in range(0, len(pts32), CHUNK_CELLS):
-            e = min(len(pts32), s + CHUNK_CELLS)
-            tsdf_fusion.points_allocate(tsdf, pts32[s:e], e - s, radius)
-
-    tsdf.relaunch_until_placed(allocate)
-    tsdf.check_capacity()
-    tsdf.init_new_blocks(0, tsdf.n_blocks)
-    per_launch = max(1, (4 << 20) // (2 * radius + 1) ** 3)
-    for s in range(0, len(pts32), per_launch):
-        e = min(len(pts32), s + per_launch)
-        tsdf_fusion.points_fuse(tsdf, pts32[s:e], nrm32[s:e], e - s, radius, config.sigma_w_m,
-                                min(config.behind_m, trunc))
-        report(on_progress, Progress(FUSE_POINTS_STAGE, e, len(pts32)))
-    tsdf.finalize()
-    report(on_progress, Progress(FREE_STAGE, 0, 1))
-    cells = _candidate_cells(tsdf, config.free_margin_m)
-    if len(cells):
-        centers = _cell_centers(tsdf, cells)
-        dist, idx = cKDTree(pts).query(centers, k=8, workers=-1)
-        side = np.einsum("ckj,ckj->ck", centers[:, None, :] - pts[idx], nrm[idx])
-        clear = dist[:, 0] >= trunc + 0.5 * np.sqrt(3) * geometry.block_size_m
-        outside = (side > 0).sum(axis=1) >= 6
-        tsdf.mark_free(cells[clear & outside])
-    report(on_progress, Progress(FREE_STAGE, 1, 1))
-    return tsdf
 
 
 # -------------------------------------------------------------------------- meshes
@@ -465,6 +384,64 @@ def _barycentric(p: np.ndarray, corners: np.ndarray) -> np.ndarray:
     return np.stack([1.0 - v - w, v, w], axis=1)
 
 
+def _mesh_cells(mesh: MeshDistance, geometry: MapGeometry, config: BuildConfig
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Coarse cells near the mesh (|d| at the centre < truncation + half a block diagonal)
+    and free cells (d at the centre beyond that), each (n, 3) int32 in (x, y, z) order.
+
+    An octree descent from a node covering the bounds: a node whose centre is farther from
+    the mesh than the threshold plus the reach of its cells' centres holds no near cell
+    (distance is 1-Lipschitz) and takes its centre's sign whole; the others split into
+    eight. Only nodes near the surface are visited; the cells of size 1 get the same test
+    at their centres as every cell had. A whole node's sign is exact where the sign does
+    not change away from the surface: closed, consistently oriented meshes, or parity
+    (whose isolated errors where a ray grazes coplanar faces a far node does not repeat)."""
+    dims = np.asarray(geometry.coarse_dims, np.int64)
+    block = geometry.block_size_m
+    origin = np.asarray(geometry.origin_m)
+    half_diag = 0.5 * np.sqrt(3) * block
+    near_m = config.trunc_m + half_diag + 1e-6
+    size = 1 << int(np.ceil(np.log2(dims.max())))
+    nodes = np.zeros((1, 3), np.int64)
+    free_nodes = []
+    while True:
+        sd = mesh.signed_distance(origin + (nodes + 0.5 * size) * block, config.mesh_sign)
+        if size == 1:
+            near_cells = nodes[np.abs(sd) < near_m]
+            free_nodes.append((nodes[sd >= config.trunc_m + half_diag], 1))
+            break
+        reach = 0.5 * np.sqrt(3) * (size - 1) * block + 1e-3  # + f32 distances' error
+        far = np.abs(sd) >= near_m + reach
+        free_nodes.append((nodes[far & (sd > 0)], size))
+        size //= 2
+        corners = np.stack(np.meshgrid(*[[0, size]] * 3, indexing="ij"), -1).reshape(-1, 3)
+        nodes = (nodes[~far][:, None, :] + corners).reshape(-1, 3)
+        nodes = nodes[np.all(nodes < dims, axis=1)]
+    free_cells = np.concatenate([_node_cells(n, s, dims) for n, s in free_nodes])
+    return _lexicographic(near_cells), _lexicographic(free_cells)
+
+
+def _node_cells(nodes: np.ndarray, size: int, dims: np.ndarray) -> np.ndarray:
+    """The cells (n, 3) of cubic nodes of `size` cells (lower corners `nodes`) inside dims:
+    small nodes all at once, large ones (few, and often mostly outside) one by one."""
+    if size <= 8:
+        local = np.stack(np.meshgrid(*[np.arange(size)] * 3, indexing="ij"), -1).reshape(-1, 3)
+        cells = (nodes[:, None, :] + local).reshape(-1, 3)
+        return cells[np.all(cells < dims, axis=1)]
+    parts = [np.zeros((0, 3), np.int64)]
+    for lo in nodes:
+        axes = [np.arange(a, b) for a, b in zip(lo, np.minimum(lo + size, dims), strict=True)]
+        parts.append(np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3))
+    return np.concatenate(parts)
+
+
+def _lexicographic(cells: np.ndarray) -> np.ndarray:
+    """Cells (n, 3) as int32 in (x, y, z) order, the order a dense grid's cells come in."""
+    cells = cells.reshape(-1, 3)
+    order = np.argsort(cell_keys(cells, cells.max(axis=0, initial=0) + 1), kind="stable")
+    return cells[order].astype(np.int32)
+
+
 def build_from_mesh(vertices: np.ndarray, triangles: np.ndarray, config: BuildConfig
                     ) -> TsdfMap:
     """Exact signed distance to a triangle mesh in the blocks near its surface.
@@ -474,7 +451,8 @@ def build_from_mesh(vertices: np.ndarray, triangles: np.ndarray, config: BuildCo
     mesh's sign holds far from it, and a drone in a large hall flies more than a few metres
     from every wall: global localization only places particles in free space), and stay
     unknown inside solids. Blocks near the surface get the exact distance at every voxel
-    centre.
+    centre. Which blocks are near is found by descending an octree of cells from the
+    bounds (`_mesh_cells`): the host's work grows with the surface, not with the bounds.
     """
     vertices = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
     triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
@@ -488,19 +466,12 @@ def build_from_mesh(vertices: np.ndarray, triangles: np.ndarray, config: BuildCo
     geometry = MapGeometry.around(vertices.min(axis=0), vertices.max(axis=0),
                                   config.voxel_size_m, trunc, margin_m=trunc)
     mesh = MeshDistance(vertices, triangles)
-    dims = np.asarray(geometry.coarse_dims)
-    cells = np.stack(np.meshgrid(*[np.arange(n) for n in dims], indexing="ij"),
-                     axis=-1).reshape(-1, 3).astype(np.int32)
+    near_cells, free_cells = _mesh_cells(mesh, geometry, config)
     origin = np.asarray(geometry.origin_m)
-    centers = origin + (cells + 0.5) * geometry.block_size_m
-    sd = mesh.signed_distance(centers, config.mesh_sign)
-    half_diag = 0.5 * np.sqrt(3) * geometry.block_size_m
-    near = np.abs(sd) < trunc + half_diag + 1e-6
-    free = sd >= trunc + half_diag
-    near_cells = cells[near]
-    tsdf = new_map(geometry, config, len(near_cells), len(tiles_of(cells[near | free])))
+    tsdf = new_map(geometry, config, len(near_cells),
+                   len(tiles_of(np.concatenate([near_cells, free_cells]))))
     tsdf.as_sums = False
-    tsdf.mark_free(cells[free])
+    tsdf.mark_free(free_cells)
     tsdf.allocate(near_cells)
     local = np.stack(np.meshgrid(*[np.arange(BLOCK)] * 3, indexing="ij"), axis=-1)
     per = 4096

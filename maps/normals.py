@@ -42,6 +42,8 @@ CREASE_DOT = 0.5  # neighbours' normals more than 60 degrees apart meet at a cre
 STACKED_MIN_M = 0.05  # parallel neighbours this far off each other's plane: two surfaces
 STACKED_SHARE = 0.7  # ... and mostly in front of or behind each other, not beside
 PARALLEL_DOT = 0.9  # a surface this parallel to a crease's end may lie between its ends
+POINT_CHUNK = 1 << 20  # points each point-wise step handles at once (bounds temporaries)
+EDGE_ROWS = 1 << 17  # representatives whose graph edges are compared at once
 
 Stage = Callable[[str], None]
 
@@ -77,7 +79,12 @@ def orient_consistently(points: np.ndarray, normals: np.ndarray, cell_m: float) 
     rep_normals = rep_normals * (sign * patch_sign[patch])[:, None]
     part = parts[patch]
     rep_normals *= _part_signs(rep_points, rep_normals, part, part.max() + 1)[part, None]
-    return normals * relation(points, normals, rep_points[member], rep_normals[member])[:, None]
+    out = np.empty_like(normals)
+    for s in range(0, len(points), POINT_CHUNK):  # a few (chunk, 3) temporaries at a time
+        m, e = member[s:s + POINT_CHUNK], min(s + POINT_CHUNK, len(points))
+        out[s:e] = normals[s:e] * relation(points[s:e], normals[s:e], rep_points[m],
+                                           rep_normals[m])[:, None]
+    return out
 
 
 def oriented_normals(points: np.ndarray, k: int, viewpoints: np.ndarray | None, cell_m: float,
@@ -142,13 +149,21 @@ class _Edges:
             empty = np.zeros(0, np.int64)
             return cls(empty, empty, np.zeros(0), np.zeros(0), np.zeros(0, bool))
         _, nb = cKDTree(points).query(points, k=k + 1, workers=-1)
-        i, j = np.repeat(np.arange(n), k), nb[:, 1:].ravel()
+        parts = [cls._of_rows(points, normals, nb, s, min(s + EDGE_ROWS, n))
+                 for s in range(0, n, EDGE_ROWS)]
+        return cls(*(np.concatenate(field) for field in zip(*parts, strict=True)))
+
+    @staticmethod
+    def _of_rows(points, normals, nb, start: int, end: int) -> tuple:
+        """The edges of representatives [start, end) (their temporaries stay that small)."""
+        k = nb.shape[1] - 1
+        i, j = np.repeat(np.arange(start, end), k), nb[start:end, 1:].ravel()
         c = _Comparison.of(points[i], normals[i], points[j], normals[j])
         trusted = ~(c.two_surfaces & ~c.cue)  # parallel, off each other's plane, side by side
         checked = np.flatnonzero(c.cue)
         trusted[checked] &= ~_through_a_surface(points, normals, nb, i[checked], j[checked])
         weight = np.where(c.cue, c.clearance, np.abs(c.direct)) * trusted
-        return cls(i, j, c.relation(), weight, ~c.cue & trusted)
+        return i, j, c.relation(), weight, ~c.cue & trusted
 
 
 def _propagate(n: int, i: np.ndarray, j: np.ndarray, cost: np.ndarray, rel: np.ndarray

@@ -21,6 +21,14 @@ def cell_keys(coords: np.ndarray, dims) -> np.ndarray:
     return (c[:, 0] * int(dims[1]) + c[:, 1]) * int(dims[2]) + c[:, 2]
 
 
+def unique_keys(keys: np.ndarray) -> np.ndarray:
+    """Sorted distinct values of an int array: sort and keep the first of each run
+    (NumPy 2.4's np.unique takes a hash path for plain integer arrays that is ~100x slower:
+    28 s instead of 0.2 s for 7 M keys)."""
+    k = np.sort(np.asarray(keys).reshape(-1))
+    return k[np.r_[True, k[1:] != k[:-1]]] if len(k) else k
+
+
 class CellLookup:
     """Values of the listed coarse cells (block ids, FREE, ...), UNKNOWN for every other
     cell and outside `dims`: a binary search in the sorted keys, memory per listed cell."""
@@ -89,7 +97,7 @@ def dilate_cells(coords: np.ndarray, radius: int, dims) -> np.ndarray:
     """Cells (n, 3) within `radius` cells (a cube) of the given ones (inside `dims`), inside
     `dims`: three separable passes over the sparse list, never a dense grid."""
     dims = np.asarray(dims, dtype=np.int64)
-    keys = np.unique(cell_keys(coords, dims))
+    keys = unique_keys(cell_keys(coords, dims))
     strides = np.array([dims[1] * dims[2], dims[2], 1], np.int64)
     for axis in range(3):
         if radius <= 0 or len(keys) == 0:
@@ -99,6 +107,6 @@ def dilate_cells(coords: np.ndarray, radius: int, dims) -> np.ndarray:
         for k in range(-radius, radius + 1):
             ok = (along + k >= 0) & (along + k < dims[axis])
             parts.append(keys[ok] + k * strides[axis])
-        keys = np.unique(np.concatenate(parts))
+        keys = unique_keys(np.concatenate(parts))
     return np.stack([keys // strides[0], (keys // strides[1]) % dims[1], keys % dims[2]],
                     axis=1).astype(np.int32)

@@ -368,19 +368,29 @@ class TsdfMap:
             return np.zeros((0, 3), np.int32), np.zeros(0, np.int32)
         return (np.concatenate(coords).astype(np.int32), np.concatenate(values))
 
-    def blocks(self) -> BlockData:
-        """Copy the allocated blocks and the FREE block list to the host."""
+    def block_chunks(self):
+        """The allocated blocks in pool order, CHUNK_BLOCKS at a time, as (coords (n, 3)
+        int32, sdf, weight (n, 8, 8, 8) float32): host users that reduce each block (global
+        candidates) never hold every block's voxels at once."""
         n = self.n_blocks
-        coords = np.zeros((n, 3), np.int32)
-        sdf = np.zeros((n, BLOCK, BLOCK, BLOCK), np.float32)
-        weight = np.zeros((n, BLOCK, BLOCK, BLOCK), np.float32)
         for s in range(0, n, CHUNK_BLOCKS):
             e = min(s + CHUNK_BLOCKS, n)
             c = np.zeros((e - s, 3), np.int32)
             d = np.zeros((e - s, BLOCK, BLOCK, BLOCK), np.float32)
             w = np.zeros_like(d)
             tsdf_blocks.read_blocks(self, s, e - s, c, d, w, int(self.as_sums))
-            coords[s:e], sdf[s:e], weight[s:e] = c, d, w
+            yield c, d, w
+
+    def blocks(self) -> BlockData:
+        """Copy the allocated blocks and the FREE block list to the host."""
+        n = self.n_blocks
+        coords = np.zeros((n, 3), np.int32)
+        sdf = np.zeros((n, BLOCK, BLOCK, BLOCK), np.float32)
+        weight = np.zeros((n, BLOCK, BLOCK, BLOCK), np.float32)
+        s = 0
+        for c, d, w in self.block_chunks():
+            coords[s:s + len(c)], sdf[s:s + len(c)], weight[s:s + len(c)] = c, d, w
+            s += len(c)
         cells, values = self.coarse_cells()
         return BlockData(coords, sdf, weight, cells[values == FREE])
 

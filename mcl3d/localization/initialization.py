@@ -4,6 +4,8 @@ sensor's roll/pitch from the IMU's gravity, and the typed initialization choices
 Global candidates are cells observed free (every voxel at least the truncation distance
 from a surface, or a whole FREE block), optionally only those within a height band above
 the nearest surface below (ground robots: the lidar rides 0.2-2.5 m above the floor).
+They are found column by column among the map's known blocks (allocated or FREE), so their
+time and memory grow with the map's surface and observed space, not with its bounds.
 """
 
 from __future__ import annotations
@@ -18,8 +20,10 @@ from mcl3d.core.config import Section
 from mcl3d.core.errors import ConfigError, MapError
 from mcl3d.core.geometry import rpy_to_rot
 
-MAX_DENSE_CELLS = 20_000_000  # the host grid for candidate cells stays under ~20 MB
+MAX_KNOWN_CELLS = 20_000_000  # cells of the known blocks at the candidates' resolution
+CHUNK_CELLS = 1 << 20  # cells of whole block columns handled at once (~80 MB of temporaries)
 UNKNOWN_CELL, FREE_CELL, OCCUPIED_CELL = 0, 1, 2
+FREE_BLOCK = -3  # a FREE coarse cell's value (mcl3d.kernels.tsdf_lookup.FREE)
 
 
 class InitConfig(Section):
@@ -83,98 +87,162 @@ class FreeCells:
     cell_m: float
 
 
-def _cell_factor(tsdf, cell_m: float) -> int:
+def _cell_factor(tsdf, cell_m: float, known_blocks: int) -> int:
+    """Voxels per cell edge: cell_m rounded down to voxel x power of two, coarser while the
+    known blocks (allocated or FREE: the map's surface and observed space, not its bounds)
+    hold more than MAX_KNOWN_CELLS cells."""
     f = 1
     while f < 8 and tsdf.voxel_size_m * f * 2 <= cell_m + 1e-9:
         f *= 2
-    while f < 8 and tsdf.geometry.n_cells * (8 // f) ** 3 > MAX_DENSE_CELLS:
+    while f < 8 and known_blocks * (8 // f) ** 3 > MAX_KNOWN_CELLS:
         f *= 2
     return f
 
 
-def cell_states(tsdf, factor: int) -> np.ndarray:
-    """Dense (X, Y, Z) uint8 grid of cells of `factor` voxels: unknown / free / occupied."""
-    data = tsdf.blocks()
+def block_cell_states(tsdf, factor: int) -> tuple[np.ndarray, np.ndarray]:
+    """Allocated blocks' coordinates (n, 3) and the states of their cells of `factor` voxels
+    (n, k, k, k) uint8, k = 8 // factor: occupied when a voxel is observed within the
+    truncation, free when every voxel is observed farther, else unknown. Read from the pool a
+    chunk at a time: one byte per cell stays, not the voxels."""
     k = 8 // factor
-    dims = np.asarray(tsdf.coarse_dims) * k
-    if np.prod(dims) > 8 * MAX_DENSE_CELLS:
-        raise MapError(f"the map's grid {tsdf.coarse_dims} blocks is too large for global "
-                       f"initialization candidates; crop the map or start from a given pose",
-                       setting="init")
-    grid = np.zeros(dims, np.uint8)
-    for c in data.free_coords:
-        grid[c[0] * k:(c[0] + 1) * k, c[1] * k:(c[1] + 1) * k, c[2] * k:(c[2] + 1) * k] = FREE_CELL
-    if len(data.coords):
-        nb = len(data.coords)
-        shape = (nb, k, factor, k, factor, k, factor)
-        observed = (data.weight > 0).reshape(shape)
-        near = (observed & (data.sdf < tsdf.truncation_m * 0.999).reshape(shape))
+    coords, states = [np.zeros((0, 3), np.int32)], [np.zeros((0, k, k, k), np.uint8)]
+    trunc = tsdf.truncation_m * 0.999
+    for c, sdf, weight in tsdf.block_chunks():
+        shape = (len(c), k, factor, k, factor, k, factor)
+        observed = (weight > 0).reshape(shape)
+        near = observed & (sdf < trunc).reshape(shape)
         occ = near.any(axis=(2, 4, 6))
         free = (observed & ~near).all(axis=(2, 4, 6))
-        state = np.where(occ, OCCUPIED_CELL, np.where(free, FREE_CELL, UNKNOWN_CELL))
-        base = data.coords * k
-        ii, jj, hh = np.meshgrid(np.arange(k), np.arange(k), np.arange(k), indexing="ij")
-        gx = base[:, 0, None, None, None] + ii
-        gy = base[:, 1, None, None, None] + jj
-        gz = base[:, 2, None, None, None] + hh
-        grid[gx, gy, gz] = state.astype(np.uint8)
-    return grid
+        coords.append(c)
+        states.append(np.where(occ, OCCUPIED_CELL,
+                               np.where(free, FREE_CELL, UNKNOWN_CELL)).astype(np.uint8))
+    return np.concatenate(coords), np.concatenate(states)
 
 
-def _keep_covered(grid: np.ndarray, ok: np.ndarray, cfg: InitConfig) -> np.ndarray:
+@dataclass
+class _Columns:
+    """The known blocks sorted by block column (x, y), then z; a block's cells' states are
+    its row of `states`, or all FREE for a FREE block (state index -1)."""
+
+    coords: np.ndarray  # (n, 3) int64 block coordinates
+    state_of: np.ndarray  # (n,) row of states, -1 for a FREE block
+    states: np.ndarray  # (m, k, k, k) uint8
+    k: int
+
+    @classmethod
+    def of(cls, tsdf, factor: int, free: np.ndarray) -> _Columns:
+        """Of the map's allocated blocks and its FREE blocks `free` (n, 3)."""
+        coords, states = block_cell_states(tsdf, factor)
+        all_coords = np.concatenate([coords, free]).astype(np.int64)
+        state_of = np.concatenate([np.arange(len(coords)), np.full(len(free), -1)])
+        order = np.lexsort(all_coords.T[::-1])
+        return cls(all_coords[order], state_of[order], states, 8 // factor)
+
+    def chunks(self):
+        """Slices of whole block columns holding about CHUNK_CELLS cells each."""
+        n = len(self.coords)
+        column = self.coords[:, 0] * (self.coords[:, 1].max(initial=0) + 1) + self.coords[:, 1]
+        starts = np.r_[0, np.flatnonzero(np.diff(column)) + 1, n]
+        per = max(1, CHUNK_CELLS // self.k**3)
+        s = 0
+        while s < n:
+            e = starts[np.searchsorted(starts, s + per, side="right") - 1]
+            e = e if e > s else starts[np.searchsorted(starts, s, side="right")]
+            yield slice(s, int(e))
+            s = int(e)
+
+    def cells(self, part: slice) -> tuple[np.ndarray, np.ndarray]:
+        """Cell coordinates (c, 3) int64 and states (c,) of the blocks in `part`."""
+        k = self.k
+        rows = self.state_of[part]
+        st = np.full((len(rows), k, k, k), FREE_CELL, np.uint8)
+        st[rows >= 0] = self.states[rows[rows >= 0]]
+        local = np.stack(np.meshgrid(*[np.arange(k)] * 3, indexing="ij"), axis=-1)
+        c = self.coords[part][:, None, None, None, :] * k + local
+        return c.reshape(-1, 3), st.reshape(-1)
+
+
+def _count_in(sorted_keys: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """How many sorted keys lie in [lo, hi) (elementwise)."""
+    return np.searchsorted(sorted_keys, hi) - np.searchsorted(sorted_keys, lo)
+
+
+def _chunk_candidates(cells: np.ndarray, states: np.ndarray, dims: np.ndarray,
+                      band: tuple[float, float] | None, cell_m: float, truncation_m: float
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Keys of the free cells of whole columns in the height band (all of them without a
+    band), and whether each is covered (a surface somewhere above it in its column).
+
+    A cell z above an occupied cell z0 is (z - z0 - 0.5) * cell + truncation high: it is in
+    the band when some occupied cell of its column lies at z0 in [first, last] below it (any
+    surface below, not only the nearest: a drone over a crate is 3.4 m above the floor but
+    1.9 m above the crate, and the band from the floor its first scan sees must hold it)."""
+    nz = int(dims[2])
+    column = (cells[:, 0] * dims[1] + cells[:, 1]) * nz
+    keys = column + cells[:, 2]
+    occupied = np.sort(keys[states == OCCUPIED_CELL])
+    free = states == FREE_CELL
+    column, z = column[free], cells[free, 2]
+    ok = np.ones(len(z), bool)
+    if band is not None:
+        lo, hi = band
+        first = np.clip(np.ceil(z - 0.5 - (hi - truncation_m) / cell_m).astype(np.int64), 0, nz)
+        last = np.clip(np.floor(z - 0.5 - (lo - truncation_m) / cell_m).astype(np.int64), -1,
+                       nz - 1)
+        ok = _count_in(occupied, column + first, column + np.maximum(last + 1, first)) > 0
+    covered = _count_in(occupied, column[ok] + z[ok] + 1, column[ok] + nz) > 0
+    return keys[free][ok], covered
+
+
+def _height_band(cfg: InitConfig) -> tuple[float, float] | None:
+    band = cfg.default_band_m if cfg.height_band_m == "auto" else cfg.height_band_m
+    if band is None or band == "none":
+        return None
+    if isinstance(band, str) or len(band) != 2:
+        raise ConfigError(f"height band {band!r}: give [lo, hi] in m, 'auto' or null")
+    lo, hi = band
+    if hi < lo:
+        raise ConfigError(f"height band {band}: hi must be >= lo")
+    return float(lo), float(hi)
+
+
+def _keep_covered(keys: np.ndarray, covered: np.ndarray, cfg: InitConfig) -> np.ndarray:
     """Candidates under a surface (a ceiling, a roof, a canopy), when asked or when they are
     a sizeable share (an indoor map: mesh-built maps also mark the space above the roof and
     around the walls free, which would take half the particles)."""
     if cfg.covered is False or cfg.covered == "false":
-        return ok
-    occupied = grid == OCCUPIED_CELL
-    above = np.flip(np.cumsum(np.flip(occupied, axis=2), axis=2), axis=2) > 0
-    covered = ok & np.concatenate([above[:, :, 1:], np.zeros_like(above[:, :, :1])], axis=2)
-    if cfg.covered == "auto" and covered.sum() < cfg.covered_share * max(ok.sum(), 1):
-        return ok
-    return covered
-
-
-def _in_height_band(occupied: np.ndarray, cell_m: float, truncation_m: float, lo: float,
-                    hi: float) -> np.ndarray:
-    """Cells with a surface somewhere below them at a height in [lo, hi], not only the
-    nearest surface: a drone over a crate is 3.4 m above the floor but 1.9 m above the
-    crate, and the band from the floor its first scan sees must still hold its pose.
-    A cell z above an occupied cell z0 is (z - z0 - 0.5) * cell + truncation high."""
-    nz = occupied.shape[2]
-    counts = np.concatenate([np.zeros((*occupied.shape[:2], 1), np.int32),
-                             np.cumsum(occupied, axis=2, dtype=np.int32)], axis=2)
-    z = np.arange(nz)
-    first = np.clip(np.ceil(z - 0.5 - (hi - truncation_m) / cell_m).astype(np.int64), 0, nz)
-    last = np.clip(np.floor(z - 0.5 - (lo - truncation_m) / cell_m).astype(np.int64), -1,
-                   nz - 1)
-    below = counts[:, :, np.maximum(last + 1, first)] - counts[:, :, first]
-    return below > 0
+        return keys
+    if cfg.covered == "auto" and covered.sum() < cfg.covered_share * max(len(keys), 1):
+        return keys
+    return keys[covered]
 
 
 def free_cells(tsdf, cfg: InitConfig) -> FreeCells:
-    """Candidate cells for global initialization; MapError when there are none."""
-    factor = _cell_factor(tsdf, cfg.cell_m)
+    """Candidate cells for global initialization, in the order of their (x, y, z) cell
+    coordinates; MapError when there are none. Built from the known blocks column by
+    column: time and memory grow with the map's surface and observed space, not with its
+    bounds (a kilometre-scale map's empty sky and unseen ground cost nothing)."""
+    band = _height_band(cfg)
+    cells, values = tsdf.coarse_cells()
+    free = cells[values == FREE_BLOCK]
+    factor = _cell_factor(tsdf, cfg.cell_m, tsdf.n_blocks + len(free))
+    del cells, values
     cell = tsdf.voxel_size_m * factor
-    grid = cell_states(tsdf, factor)
-    ok = grid == FREE_CELL
-    band = cfg.default_band_m if cfg.height_band_m == "auto" else cfg.height_band_m
-    if band == "none":
-        band = None
-    if band is not None:
-        if isinstance(band, str) or len(band) != 2:
-            raise ConfigError(f"height band {band!r}: give [lo, hi] in m, 'auto' or null")
-        lo, hi = band
-        if hi < lo:
-            raise ConfigError(f"height band {band}: hi must be >= lo")
-        ok &= _in_height_band(grid == OCCUPIED_CELL, cell, tsdf.truncation_m, lo, hi)
-    ok = _keep_covered(grid, ok, cfg)
-    idx = np.argwhere(ok)
-    if len(idx) == 0:
-        where = f" within the height band {band} m above a surface" if band is not None else ""
+    dims = np.asarray(tsdf.coarse_dims, np.int64) * (8 // factor)
+    columns = _Columns.of(tsdf, factor, free)
+    keys, covered = [np.zeros(0, np.int64)], [np.zeros(0, bool)]
+    for part in columns.chunks():
+        k, c = _chunk_candidates(*columns.cells(part), dims, band, cell, tsdf.truncation_m)
+        keys.append(k)
+        covered.append(c)
+    keys = np.sort(_keep_covered(np.concatenate(keys), np.concatenate(covered), cfg))
+    if len(keys) == 0:
+        where = f" within the height band {list(band)} m above a surface" if band else ""
         raise MapError(f"the map has no observed free space{where} to place particles in; "
                        f"drop the height band, or start from a given pose",
                        setting="height_band")
+    idx = np.stack([keys // (dims[1] * dims[2]), (keys // dims[2]) % dims[1], keys % dims[2]],
+                   axis=1)
     corners = np.asarray(tsdf.origin_m) + idx * cell
     return FreeCells(corners.astype(np.float32), float(cell))
 

@@ -24,7 +24,7 @@ from mcl3d.io.logs.faults import LogFaults, format_stamp
 from mcl3d.io.logs.plausibility import check_scans
 from mcl3d.io.logs.reader import LogReader
 from mcl3d.io.trajectory import Trajectory, read_trajectory
-from mcl3d.maps import build, export, map_file
+from mcl3d.maps import build, export, map_file, point_build
 from mcl3d.maps.hatsdf import import_hatsdf
 from mcl3d.maps.tsdf import (
     MapGeometry,
@@ -39,6 +39,7 @@ MESH_ONLY_SUFFIXES = (".obj", ".stl", ".off", ".gltf", ".glb")
 POINT_ONLY_SUFFIXES = (".pcd", ".bin")
 HDF5_SUFFIXES = (".h5", ".hdf5")
 FUSE_STAGE = "fusing scans"  # the progress stage of a log's scans
+FUSED_FIELDS = ("ring",)  # what fusion reads of a scan besides its points and times
 STAMP_TEXT_NS = 1_000  # a stamp written through float64 seconds (older files, other tools)
 # is only good to ~0.24 us at epoch times: a scan this close past an end counts as at the end
 
@@ -183,8 +184,8 @@ def _build_from_points(req: BuildMapRequest, on_progress: ProgressCallback | Non
     viewpoints = None
     if req.trajectory:
         viewpoints = read_trajectory(req.trajectory).positions()
-    tsdf = build.build_from_points(cloud.points, req.config, viewpoints=viewpoints,
-                                   on_progress=on_progress)
+    tsdf = point_build.build_from_points(cloud.points, req.config, viewpoints=viewpoints,
+                                         on_progress=on_progress)
     return _Built(tsdf, {"kind": "points", "path": str(req.source),
                          "points": len(cloud.points),
                          "normals_oriented_towards": "trajectory" if viewpoints is not None
@@ -211,6 +212,8 @@ class _LogScans:
     n_scans: int
     n_empty: int  # scans without a point in range
     deskewed: bool  # some scans have per-point times
+    cached: list | None  # every scan as pass 1 decoded it (what fusion reads), None when
+    # they did not fit in BuildConfig.scan_cache_mb: pass 2 then decodes the log again
 
 
 def _build_from_log(req: BuildMapRequest, on_progress: ProgressCallback | None) -> _Built:
@@ -229,7 +232,8 @@ def _build_from_log(req: BuildMapRequest, on_progress: ProgressCallback | None) 
         while True:
             tsdf = build.new_map(geometry, cfg, needed, needed_tiles)
             fuser = build.ScanFuser(tsdf, cfg)
-            _fuse_all(reader, traj, fuser, scans.n_scans, on_progress)
+            _fuse_all(scans.cached if scans.cached is not None else reader.scans(), traj,
+                      fuser, scans.n_scans, on_progress)
             if not tsdf.overflowed:
                 break
             needed, needed_tiles = build.grown_capacity(tsdf, cfg), build.grown_tiles(tsdf)
@@ -290,12 +294,22 @@ def _scan_pose(traj: Trajectory, cloud):
 
 
 def _scan_bounds(req: BuildMapRequest, reader: LogReader, traj: Trajectory) -> _LogScans:
-    """Pass 1: check every scan has a pose and find the map's bounds."""
+    """Pass 1: check every scan has a pose and find the map's bounds; keep the decoded scans
+    for pass 2 while they fit in the cache."""
     cfg = req.config
     lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
     n_scans = n_empty = 0
     deskewed = False
+    cached, cache_left = [], cfg.scan_cache_mb * 2**20
     for cloud in reader.scans():
+        if cached is not None:
+            cloud = dataclasses.replace(cloud, fields={
+                k: v for k, v in cloud.fields.items() if k in FUSED_FIELDS})
+            cache_left -= _cloud_bytes(cloud)
+            if cache_left >= 0:
+                cached.append(cloud)
+            else:
+                cached = None
         pts = np.asarray(cloud.points, dtype=np.float32).reshape(-1, 3)
         T, _, _ = _scan_pose(traj, cloud)
         deskewed = deskewed or _point_times(cloud) is not None
@@ -312,16 +326,21 @@ def _scan_bounds(req: BuildMapRequest, reader: LogReader, traj: Trajectory) -> _
         raise PointCloudError(
             f"{req.source}: none of its {n_scans} scans has points between "
             f"{cfg.min_range_m} and {cfg.max_range_m} m; nothing to build a map from")
-    return _LogScans(lo, hi, n_scans, n_empty, deskewed)
+    return _LogScans(lo, hi, n_scans, n_empty, deskewed, cached)
 
 
-def _fuse_all(reader: LogReader, traj: Trajectory, fuser: build.ScanFuser, n_scans: int,
+def _cloud_bytes(cloud) -> int:
+    return cloud.points.nbytes + sum(v.nbytes for v in cloud.fields.values()) + (
+        cloud.times_s.nbytes if cloud.times_s is not None else 0)
+
+
+def _fuse_all(clouds, traj: Trajectory, fuser: build.ScanFuser, n_scans: int,
               on_progress: ProgressCallback | None) -> None:
     """Pass 2: fuse every scan, reporting each (empty ones included)."""
-    for done, cloud in enumerate(reader.scans(), start=1):
+    for done, cloud in enumerate(clouds, start=1):
         if len(cloud.points):
             T_a, T_b, alpha = _scan_pose(traj, cloud)
-            fuser.fuse(cloud.points, T_a, T_b, alpha)
+            fuser.fuse(cloud.points, T_a, T_b, alpha, rings=cloud.fields.get("ring"))
         report(on_progress, Progress(FUSE_STAGE, done, n_scans))
 
 

@@ -165,3 +165,16 @@ def test_nodes_without_edges_keep_their_sign():
     part, sign = map_normals._propagate(3, none, none, np.zeros(0), np.zeros(0))
     np.testing.assert_array_equal(part, [0, 1, 2])
     np.testing.assert_array_equal(sign, [1.0, 1.0, 1.0])
+
+
+def test_chunked_steps_give_the_same_normals(monkeypatch):
+    """Edges compared and points signed a small chunk at a time (what bounds memory on a
+    20 M-point map) give exactly the normals of one chunk."""
+    rng = np.random.default_rng(5)
+    pts, truth = _street(rng)
+    scrambled = _scrambled(rng, truth)
+    whole = map_normals.orient_consistently(pts, scrambled, cell_m=0.3)
+    monkeypatch.setattr(map_normals, "EDGE_ROWS", 37)
+    monkeypatch.setattr(map_normals, "POINT_CHUNK", 1001)
+    np.testing.assert_array_equal(map_normals.orient_consistently(pts, scrambled, cell_m=0.3),
+                                  whole)

@@ -137,7 +137,8 @@ def test_fused_surface_agrees_with_open3d_within_one_voxel(ti_runtime, room, sca
 
 
 def test_points_map_from_surface_samples(ti_runtime, room):
-    from mcl3d.maps.build import BuildConfig, build_from_points
+    from mcl3d.maps.build import BuildConfig
+    from mcl3d.maps.point_build import build_from_points
 
     rng = np.random.default_rng(0)
     tri = room[0][room[1]]
@@ -185,7 +186,8 @@ def test_fusion_grows_and_retries_on_overflow(ti_runtime, room, scans):
 
 def test_bad_inputs(ti_runtime):
     from mcl3d.core.errors import ConfigError
-    from mcl3d.maps.build import BuildConfig, build_from_mesh, build_from_points
+    from mcl3d.maps.build import BuildConfig, build_from_mesh
+    from mcl3d.maps.point_build import build_from_points
 
     with pytest.raises(PointCloudError, match="0 valid points"):
         build_from_points(np.zeros((0, 3)), BuildConfig())

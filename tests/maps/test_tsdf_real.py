@@ -44,7 +44,8 @@ def test_real_scans_lie_on_the_zero_level_set_of_the_real_map(ti_runtime, ouster
     import taichi as ti
 
     from mcl3d.kernels import tsdf_lookup as k
-    from mcl3d.maps.build import BuildConfig, build_from_points
+    from mcl3d.maps.build import BuildConfig
+    from mcl3d.maps.point_build import build_from_points
 
     d, clouds, poses = ouster
     cloud = np.asarray(o3d.io.read_point_cloud(str(d / f"{STEM}_lb_n3_map-000.ply")).points)

@@ -1,0 +1,207 @@
+"""Global-initialization candidates from the map's known blocks, column by column: the same
+cells as the former dense grid over the bounds (kept here as the NumPy reference), and a
+global start in a map whose bounds span kilometres but whose surface is two rooms."""
+
+import numpy as np
+import pytest
+
+from mcl3d.core import geometry
+
+localize_world = pytest.importorskip("support.localize_world")
+
+UNKNOWN, FREE, OCCUPIED = 0, 1, 2
+FAR_BLOCKS = (2500, 2500, 250)  # the room's offset in blocks: 1 km x 1 km x 100 m at 10 cm
+
+
+def dense_candidates(tsdf, cfg) -> np.ndarray:
+    """The former implementation: a dense (X, Y, Z) grid of cell states over the bounds,
+    the height band by cumulative sums along z, covered cells by a reversed cumsum."""
+    f = 1
+    while f < 8 and tsdf.voxel_size_m * f * 2 <= cfg.cell_m + 1e-9:
+        f *= 2
+    k, cell, trunc = 8 // f, tsdf.voxel_size_m * f, tsdf.truncation_m
+    data = tsdf.blocks()
+    grid = np.zeros(np.asarray(tsdf.coarse_dims) * k, np.uint8)
+    for c in data.free_coords:
+        grid[c[0] * k:(c[0] + 1) * k, c[1] * k:(c[1] + 1) * k, c[2] * k:(c[2] + 1) * k] = FREE
+    shape = (len(data.coords), k, f, k, f, k, f)
+    observed = (data.weight > 0).reshape(shape)
+    near = observed & (data.sdf < trunc * 0.999).reshape(shape)
+    state = np.where(near.any(axis=(2, 4, 6)), OCCUPIED,
+                     np.where((observed & ~near).all(axis=(2, 4, 6)), FREE, UNKNOWN))
+    for (x, y, z), s in zip(data.coords, state, strict=True):
+        grid[x * k:(x + 1) * k, y * k:(y + 1) * k, z * k:(z + 1) * k] = s
+    ok = grid == FREE
+    occupied = grid == OCCUPIED
+    band = cfg.default_band_m if cfg.height_band_m == "auto" else cfg.height_band_m
+    if band is not None and band != "none":
+        lo, hi = band
+        nz = grid.shape[2]
+        counts = np.concatenate([np.zeros((*grid.shape[:2], 1), np.int32),
+                                 np.cumsum(occupied, axis=2, dtype=np.int32)], axis=2)
+        z = np.arange(nz)
+        first = np.clip(np.ceil(z - 0.5 - (hi - trunc) / cell).astype(np.int64), 0, nz)
+        last = np.clip(np.floor(z - 0.5 - (lo - trunc) / cell).astype(np.int64), -1, nz - 1)
+        ok &= (counts[:, :, np.maximum(last + 1, first)] - counts[:, :, first]) > 0
+    if cfg.covered is not False:
+        above = np.flip(np.cumsum(np.flip(occupied, axis=2), axis=2), axis=2) > 0
+        covered = ok & np.concatenate([above[:, :, 1:], np.zeros_like(above[:, :, :1])], 2)
+        if not (cfg.covered == "auto" and covered.sum() < cfg.covered_share * max(ok.sum(), 1)):
+            ok = covered
+    return (np.asarray(tsdf.origin_m) + np.argwhere(ok) * cell).astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def maps():
+    """A mesh-built room (5 cm), the hall (10 cm) and a room fused from six scans (unknown
+    voxels inside allocated blocks, carved free space)."""
+    from mcl3d.core import runtime
+    from mcl3d.maps.build import BuildConfig, MapGeometry, ScanFuser, new_map
+
+    runtime.init("cpu")
+    room = localize_world.build_map()
+    hall = localize_world.build_map(0.1, localize_world.hall_mesh())
+    cfg = BuildConfig(voxel_size_m=0.1)
+    mesh = localize_world.room_mesh()
+    g = MapGeometry.around(mesh.vertices.min(0), mesh.vertices.max(0), 0.1, cfg.trunc_m,
+                           margin_m=cfg.trunc_m)
+    fused = new_map(g, cfg)
+    scanner, fuser = localize_world.Scanner(seed=1), ScanFuser(fused, cfg)
+    for T in localize_world.path(12)[::2]:
+        fuser.fuse(scanner.scan(T), T)
+    fused.finalize()
+    return {"room": room, "hall": hall, "fused": fused}
+
+
+CONFIGS = [{"height_band_m": None, "covered": False}, {}, {"covered": True},
+           {"height_band_m": [0.5, 1.4], "covered": False}, {"cell_m": 0.1},
+           {"cell_m": 0.4, "height_band_m": [0.0, 3.0]}, {"cell_m": 0.05, "covered": True}]
+
+
+@pytest.mark.parametrize("name", ["room", "hall", "fused"])
+def test_candidates_equal_the_dense_grid(maps, name, ti_runtime, monkeypatch):
+    """Same cells in the same order for every option, also when the columns come in many
+    small chunks."""
+    from mcl3d.localization import initialization
+    from mcl3d.localization.initialization import InitConfig, free_cells
+
+    tsdf = maps[name]
+    for i, overrides in enumerate(CONFIGS):
+        cfg = InitConfig(**overrides)
+        monkeypatch.setattr(initialization, "CHUNK_CELLS", 1 << 22 if i % 2 else 64)
+        got = free_cells(tsdf, cfg)
+        want = dense_candidates(tsdf, cfg)
+        assert len(want) > 0
+        np.testing.assert_array_equal(got.corners_m, want, err_msg=str(overrides))
+
+
+def test_height_band_counts_every_surface_below():
+    """Brute force over random columns: a free cell is in the band when any occupied cell
+    below it (not only the nearest) is lo..hi below, heights measured as the map does."""
+    from mcl3d.localization.initialization import _chunk_candidates
+
+    rng = np.random.default_rng(0)
+    dims = np.array([3, 4, 30])
+    states = np.where(rng.random(dims) < 0.08, OCCUPIED, FREE).astype(np.uint8)
+    cells = np.argwhere(np.ones(dims, bool))
+    cell, trunc, lo, hi = 0.2, 0.15, 0.9, 1.5
+    keys, covered = _chunk_candidates(cells, states.reshape(-1), dims, (lo, hi), cell, trunc)
+    ref, ref_covered = [], []
+    for x, y, z in np.ndindex(*dims):
+        if states[x, y, z] != FREE:
+            continue
+        heights = [(z - z0 - 0.5) * cell + trunc for z0 in range(z) if states[x, y, z0] == 2]
+        if any(lo <= h <= hi for h in heights):
+            ref.append((x * dims[1] + y) * dims[2] + z)
+            ref_covered.append(bool((states[x, y, z + 1:] == OCCUPIED).any()))
+    np.testing.assert_array_equal(keys, ref)
+    np.testing.assert_array_equal(covered, ref_covered)
+    assert 0 < len(ref) < (states == FREE).sum() and 0 < sum(ref_covered) < len(ref)
+
+
+def test_a_drone_over_a_crate_stays_in_the_band():
+    """Floor at z = 0, a crate top at z = 1.5 m: the cell 3.4 m above the floor is 1.9 m
+    above the crate, and the band around 3.4 m must still hold it."""
+    from mcl3d.localization.initialization import _chunk_candidates
+
+    cell, trunc = 0.2, 0.13  # no height exactly on a band edge
+    states = np.full(30, FREE, np.uint8)
+    states[[0, 8]] = OCCUPIED  # floor cell and crate-top cell
+    cells = np.stack([np.zeros(30, int), np.zeros(30, int), np.arange(30)], axis=1)
+    keys, _ = _chunk_candidates(cells, states, np.array([1, 1, 30]), (3.2, 3.6), cell, trunc)
+    above_floor = (np.arange(30) - 0.5) * cell + trunc
+    above_crate = above_floor - 8 * cell
+    want = (((above_floor >= 3.2) & (above_floor <= 3.6))
+            | ((above_crate >= 3.2) & (above_crate <= 3.6))) & (states == FREE)
+    np.testing.assert_array_equal(keys, np.flatnonzero(want))
+    assert 17 in keys  # 3.53 m above the floor, 1.93 m above the crate
+
+
+def placed_together(parts, voxel_size_m: float):
+    """One map holding each (map, offset in blocks) at its offset: bounds over all of them,
+    blocks and FREE cells copied (the maps share voxel size, truncation and block grid)."""
+    from mcl3d.maps.tsdf import MapGeometry, TsdfMap
+
+    first = parts[0][0]
+    dims = np.max([np.asarray(m.coarse_dims) + off for m, off in parts], axis=0)
+    g = MapGeometry(voxel_size_m, first.truncation_m, first.origin_m, tuple(int(d) for d in dims))
+    data = [(m.blocks(), np.asarray(off, np.int32)) for m, off in parts]
+    n = sum(len(d.coords) for d, _ in data)
+    tsdf = TsdfMap(g, n, writable=False, capacity_tiles=4096)
+    for d, off in data:
+        tsdf.allocate(d.coords + off)
+        tsdf.write_blocks(d.coords + off, d.sdf, d.weight)
+        tsdf.mark_free(d.free_coords + off)
+    return tsdf
+
+
+@pytest.fixture(scope="module")
+def far_apart(maps):
+    """The hall and the room (both at 10 cm) 1 km apart in x and y and 100 m in z: 1.6
+    billion coarse cells of bounds (the dense grid refused anything over 160 million)."""
+    room = localize_world.build_map(0.1)
+    hall = maps["hall"]
+    assert room.origin_m == hall.origin_m
+    return room, hall, placed_together([(hall, (0, 0, 0)), (room, FAR_BLOCKS)], 0.1)
+
+
+def test_candidates_of_rooms_a_kilometre_apart(far_apart, ti_runtime):
+    """The candidates of the joint map are those of each room, the far one's moved by its
+    offset; they never touch the kilometre between them."""
+    from mcl3d.localization.initialization import InitConfig, free_cells
+
+    room, hall, joint = far_apart
+    assert joint.geometry.n_cells > 1_500_000_000
+    shift = np.asarray(FAR_BLOCKS) * joint.geometry.block_size_m
+    for overrides in ({"covered": True}, {"height_band_m": None, "covered": False}):
+        cfg = InitConfig(**overrides)
+        got = free_cells(joint, cfg)
+        want = np.concatenate([free_cells(hall, cfg).corners_m,
+                               free_cells(room, cfg).corners_m + shift.astype(np.float32)])
+        assert got.cell_m == pytest.approx(0.2)
+        np.testing.assert_allclose(got.corners_m, want, atol=1e-3)
+
+
+def test_global_start_in_rooms_a_kilometre_apart(far_apart, ti_runtime):
+    """Particles start in both rooms; scans of the room bring the filter to its pose 1 km
+    away (no coarse search phase: its field is still a dense grid over the bounds)."""
+    from mcl3d.localization.localization_config import LocalizerConfig
+    from mcl3d.localization.localizer import Localizer
+
+    _, _, joint = far_apart
+    shift = geometry.se3(np.eye(3), np.asarray(FAR_BLOCKS) * joint.geometry.block_size_m)
+    scanner = localize_world.Scanner(seed=2)
+    path = localize_world.path(30)
+    cfg = LocalizerConfig.model_validate({"particles": 20000, "seed": 3,
+                                          "sensor": {"coarse_sigma_m": 0.0}})
+    loc = Localizer(joint, cfg, imu_roll_pitch=(0.0, 0.0))
+    loc.init_global()
+    pos, _, _ = loc.particles.host()
+    assert (pos[:, 0] < 100).mean() > 0.3 and (pos[:, 0] > 900).mean() > 0.1  # both rooms
+    T_prev = None
+    for k, T in enumerate(path):
+        dT = None if T_prev is None else geometry.relative_se3(T_prev, T)
+        r = loc.step(scanner.scan(T), dT, 0.1 * k)
+        T_prev = T
+    err = np.linalg.norm(r.T_map_lidar[:3, 3] - (shift @ path[-1])[:3, 3])
+    assert r.state == "converged" and err < 0.2, (r.state, err)
