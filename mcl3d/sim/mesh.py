@@ -1,7 +1,9 @@
 """Triangle meshes for simulated worlds: primitives, surface sampling and binary PLY export.
 
 Every triangle carries a diffuse reflectivity in [0, 1] so that simulated LiDAR intensity
-depends on the material as well as on range and incidence angle.
+depends on the material as well as on range and incidence angle, and a scatter depth: 0 for
+a solid surface, else the mean depth (m) a laser pulse travels into a porous volume (a tree's
+foliage) before a leaf returns it.
 """
 
 from __future__ import annotations
@@ -16,11 +18,18 @@ from mcl3d.core.outputs import atomic_open
 
 @dataclass
 class Mesh:
-    """Vertices (V, 3) float64 in metres, triangles (F, 3) int32, reflectivity (F,) float32."""
+    """Vertices (V, 3) float64 in metres, triangles (F, 3) int32, reflectivity (F,) float32,
+    scatter depth (F,) float32 in metres (None: every triangle solid)."""
 
     vertices: np.ndarray
     triangles: np.ndarray
     reflectivity: np.ndarray
+    scatter_depth_m: np.ndarray | None = None
+
+    def scatter_depths_m(self) -> np.ndarray:
+        if self.scatter_depth_m is None:
+            return np.zeros(self.n_triangles, dtype=np.float32)
+        return self.scatter_depth_m
 
     @property
     def n_triangles(self) -> int:
@@ -28,7 +37,7 @@ class Mesh:
 
     def translated(self, offset_m: np.ndarray) -> Mesh:
         return Mesh(self.vertices + np.asarray(offset_m, dtype=np.float64), self.triangles,
-                    self.reflectivity)
+                    self.reflectivity, self.scatter_depth_m)
 
     def triangle_areas_m2(self) -> np.ndarray:
         a, b, c = (self.vertices[self.triangles[:, i]] for i in range(3))
@@ -48,6 +57,8 @@ def merge(meshes: list[Mesh]) -> Mesh:
         np.concatenate([m.triangles + off for m, off in zip(meshes, offsets, strict=True)])
         .astype(np.int32),
         np.concatenate([m.reflectivity for m in meshes]).astype(np.float32),
+        None if all(m.scatter_depth_m is None for m in meshes)
+        else np.concatenate([m.scatter_depths_m() for m in meshes]).astype(np.float32),
     )
 
 
@@ -58,14 +69,17 @@ class MeshBuilder:
         self._vertices: list[np.ndarray] = []
         self._triangles: list[np.ndarray] = []
         self._reflectivity: list[np.ndarray] = []
+        self._scatter: list[np.ndarray] = []
         self._n_vertices = 0
 
-    def add(self, vertices: np.ndarray, triangles: np.ndarray, reflectivity: float) -> None:
+    def add(self, vertices: np.ndarray, triangles: np.ndarray, reflectivity: float,
+            scatter_depth_m: float = 0.0) -> None:
         vertices = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
         triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
         self._vertices.append(vertices)
         self._triangles.append(triangles + self._n_vertices)
         self._reflectivity.append(np.full(len(triangles), reflectivity, dtype=np.float32))
+        self._scatter.append(np.full(len(triangles), scatter_depth_m, dtype=np.float32))
         self._n_vertices += len(vertices)
 
     def box(self, lo, hi, reflectivity: float) -> None:
@@ -101,7 +115,7 @@ class MeshBuilder:
         self.prism(base, z0, z1, reflectivity)
 
     def cone(self, center_xy, radius_m: float, z0: float, z1: float, reflectivity: float,
-             sides: int = 10) -> None:
+             sides: int = 10, scatter_depth_m: float = 0.0) -> None:
         angles = np.linspace(0.0, 2 * np.pi, sides, endpoint=False)
         ring = np.column_stack([center_xy[0] + radius_m * np.cos(angles),
                                 center_xy[1] + radius_m * np.sin(angles), np.full(sides, z0)])
@@ -109,7 +123,7 @@ class MeshBuilder:
         centre = [center_xy[0], center_xy[1], z0]
         faces = [[i, (i + 1) % sides, sides] for i in range(sides)]
         faces += [[i, sides + 1, (i + 1) % sides] for i in range(sides)]
-        self.add(np.vstack([ring, apex, centre]), faces, reflectivity)
+        self.add(np.vstack([ring, apex, centre]), faces, reflectivity, scatter_depth_m)
 
     def ramp(self, x0: float, x1: float, y0: float, y1: float, z_at_x0: float, z_at_x1: float,
              reflectivity: float) -> None:
@@ -137,8 +151,9 @@ class MeshBuilder:
         if not self._vertices:
             return Mesh(np.zeros((0, 3)), np.zeros((0, 3), np.int32), np.zeros(0, np.float32))
         triangles = np.concatenate(self._triangles).astype(np.int32)
+        scatter = np.concatenate(self._scatter)
         return Mesh(np.concatenate(self._vertices), triangles,
-                    np.concatenate(self._reflectivity))
+                    np.concatenate(self._reflectivity), scatter if scatter.any() else None)
 
 
 def sample_surface(mesh: Mesh, density_per_m2: float, rng: np.random.Generator

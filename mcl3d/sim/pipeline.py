@@ -67,6 +67,9 @@ class WorldConfig(Section):
     forest_border_m: float = Field(0.0, description="wild wood around the rows (m)")
     forest_undergrowth: float = Field(0.15, description="chance of a shrub beside each tree")
     forest_roughness_m: float = Field(0.015, description="ground bumps, sigma 1 m apart (m)")
+    forest_slope_percent: float = Field(0.0, description="hillside grade along the rows (%)")
+    forest_foliage_depth_m: float = Field(0.0, description="mean depth a laser pulse goes "
+                                          "into foliage before a leaf returns it (m; 0: solid)")
     arena_length_m: float = Field(40.0, description="hall length (m)")
     arena_width_m: float = Field(30.0, description="hall width (m)")
     warehouse_aisles: int = Field(6, description="look-alike rack aisles (5 m apart)")
@@ -78,7 +81,9 @@ class WorldConfig(Section):
                 "forest": {"rows": self.forest_rows, "trees_per_row": self.forest_trees_per_row,
                            "border_m": self.forest_border_m,
                            "undergrowth": self.forest_undergrowth,
-                           "roughness_m": self.forest_roughness_m},
+                           "roughness_m": self.forest_roughness_m,
+                           "slope_percent": self.forest_slope_percent,
+                           "foliage_depth_m": self.forest_foliage_depth_m},
                 "arena": {"length_m": self.arena_length_m, "width_m": self.arena_width_m},
                 "warehouse": {"n_aisles": self.warehouse_aisles, "n_bays": self.warehouse_bays},
                 }[world]

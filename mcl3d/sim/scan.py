@@ -50,9 +50,11 @@ def simulate_scan(model: LidarModel, cfg: LidarConfig, caster: WorldCaster,
              & (azimuth >= lo) & (azimuth <= hi))
     noise = rng.standard_normal(len(t_abs))
     r = np.where(valid, hits.range_m + sigma * noise, 0.0)
-    points = (d_lidar * r[:, None]).astype(np.float32)
     intensity = 255.0 * hits.reflectivity * (0.2 + 0.8 * hits.cos_incidence)
     intensity = np.where(valid, intensity * (1.0 + 0.05 * rng.standard_normal(len(t_abs))), 0.0)
+    if hits.scatter_depth_m is not None:  # drawn last: worlds of solids keep their scans
+        r = np.where(valid, r + _scatter_depth(hits.scatter_depth_m, rng), 0.0)
+    points = (d_lidar * r[:, None]).astype(np.float32)
     intensity = np.clip(intensity, 0.0, 255.0).astype(np.float32)
     times = firing.times_s.astype(np.float32)
     ring = firing.ring
@@ -62,3 +64,9 @@ def simulate_scan(model: LidarModel, cfg: LidarConfig, caster: WorldCaster,
         return SimulatedScan(points, times, intensity, ring, height, width, n_valid)
     return SimulatedScan(points[valid], times[valid], intensity[valid], ring[valid], 1, n_valid,
                          n_valid)
+
+
+def _scatter_depth(mean_depth_m: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """How far each pulse went into porous foliage before a leaf returned it: exponential
+    (leaves spread at random through the crown: Beer-Lambert), 0 on solid surfaces."""
+    return rng.exponential(1.0, len(mean_depth_m)) * mean_depth_m

@@ -247,14 +247,19 @@ def _timed_path(waypoints: np.ndarray, style: _Style, t0: float, min_end_s: floa
 
 
 def _ground_height(world: World, xy: np.ndarray, z_ref: float) -> np.ndarray:
-    """Height of the walkable surface below each xy point (ray cast down from z_ref + 2 m)."""
+    """Height of the walkable surface below each xy point, ray cast down from z_ref + 2 m (a
+    storey's floor, not the one above), or in a one-level world from above its highest
+    ground (a hillside climbs more than 2 m)."""
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(world.ground.vertices.astype(np.float32)),
                         o3d.core.Tensor(world.ground.triangles.astype(np.uint32)))
+    start = z_ref + 2.0
+    if len(world.floor_z_m) == 1 and len(world.ground.vertices):
+        start = max(start, float(world.ground.vertices[:, 2].max()) + 1.0)
     rays = np.zeros((len(xy), 6), dtype=np.float32)
-    rays[:, :2], rays[:, 2], rays[:, 5] = xy, z_ref + 2.0, -1.0
+    rays[:, :2], rays[:, 2], rays[:, 5] = xy, start, -1.0
     t_hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
-    return np.where(np.isfinite(t_hit), z_ref + 2.0 - t_hit, z_ref)
+    return np.where(np.isfinite(t_hit), start - t_hit, z_ref)
 
 
 def _pose_values(world: World, kind: str, t: np.ndarray, xy: np.ndarray, heading: np.ndarray,
@@ -338,16 +343,24 @@ def _elevator(world: World, duration_s: float, rng: np.random.Generator) -> SimT
                          door_closed_s=(ride_start - 1.0, ride_end + 1.0), cab_z0_m=z_top)
 
 
-# The SLAM paper's forest recording: a MID-360 carried at a careful walk over uneven ground,
-# with the irregular turns of a hand-held sensor on top of the gait's regular sway.
-PAPER_FOREST_STYLE = _Style(1.0, 0.8, 0.6, 0.04)
+# The SLAM paper's forest recording: a MID-360 carried at a walk over uneven ground, with the
+# irregular turns of a hand-held sensor on top of the gait's regular sway. A walker turns
+# round at a row's end in a couple of seconds (up to 1.5 rad/s), not in a wheeled robot's
+# wide arc, and each step jolts the hand: pitch nods at the step rate with a harmonic from
+# the heel strike, fast enough that one 100 ms sweep holds a curved, not a constant, motion.
+PAPER_FOREST_STYLE = _Style(1.0, 1.5, 0.8, 0.04)
 PAPER_FOREST_JITTER_DEG = (1.0, 1.0, 2.0)  # roll, pitch, yaw sigma of the irregular part
 PAPER_FOREST_JITTER_S = 0.3  # its correlation time
+PAPER_FOREST_STEP_HZ = 1.8  # steps per second (the 'handheld' gait's bob)
+PAPER_FOREST_STEP_NOD_DEG = (1.5, 0.6)  # pitch amplitude at the step rate and twice it
 # World settings (SimConfig.world keys) a named scenario uses wherever the config leaves the
-# default: paper-forest walks the plantation inside a wild wood (something to see when facing
-# out of the rows, as in a real wood), with shrubs and a bumpy floor.
+# default: paper-forest walks a plantation on a hillside (rows running down the slope) inside
+# a wild wood (something to see when facing out of the rows, as in a real wood), with shrubs,
+# a bumpy floor and crowns a laser pulse goes into before a leaf returns it, as real foliage
+# does (no solid shells for the registration to lock onto).
 SCENARIO_WORLD = {"paper-forest": {"forest_border_m": 20.0, "forest_undergrowth": 0.4,
-                                   "forest_roughness_m": 0.04}}
+                                   "forest_roughness_m": 0.04, "forest_slope_percent": 6.0,
+                                   "forest_foliage_depth_m": 0.5}}
 SCENARIO_SENSOR = {"paper-forest": "mid360"}  # the LiDAR a scenario uses unless told
 
 
@@ -371,6 +384,9 @@ def _paper_forest(world: World, duration_s: float, rng: np.random.Generator) -> 
         noise = gaussian_filter1d(rng.standard_normal(len(t)), sigma_knots, mode="nearest")
         noise *= np.radians(sigma_deg) / max(float(np.std(noise)), 1e-12)
         values[:, 3 + axis] += env * noise
+    step = 2 * np.pi * PAPER_FOREST_STEP_HZ * t + rng.uniform(0, 2 * np.pi)
+    nod, strike = np.radians(PAPER_FOREST_STEP_NOD_DEG)
+    values[:, 4] += env * (nod * np.sin(step) + strike * np.sin(2 * step))
     stops = np.zeros(len(t), dtype=bool)
     stops[[0, -1]] = True
     return SimTrajectory("paper-forest", world, t, values, stops, duration_s)

@@ -293,12 +293,16 @@ def building(seed: int = 0, n_floors: int = 3, floor_height_m: float = 3.5) -> W
 
 def forest(seed: int = 0, rows: int = 10, trees_per_row: int = 20, row_spacing_m: float = 4.0,
            tree_spacing_m: float = 3.0, border_m: float = 0.0, undergrowth: float = 0.15,
-           roughness_m: float = 0.015) -> World:
+           roughness_m: float = 0.015, slope_percent: float = 0.0,
+           foliage_depth_m: float = 0.0) -> World:
     """Plantation in regular rows: trunks of varied radius, conical canopies, uneven ground
     that repeats every two rows, so lanes look alike (many loop candidates). `border_m` of
     wild wood around it (trees and shrubs at random, beyond a 4 m clear headland) give a
     sensor facing out of the rows something to see; `undergrowth` is the chance of a shrub
-    beside each plantation tree; `roughness_m` the ground's bumps (sigma, 1 m apart)."""
+    beside each plantation tree; `roughness_m` the ground's bumps (sigma, 1 m apart);
+    `slope_percent` a hillside grade along the rows (every lane climbs and descends alike);
+    `foliage_depth_m` the mean depth a laser pulse goes into a crown or shrub before a leaf
+    returns it (0: foliage is a solid shell)."""
     if rows < 6 or trees_per_row < 6:  # the kidnap jumps two rows across
         raise ConfigError(f"world.forest_rows and world.forest_trees_per_row must be >= 6, "
                           f"got {rows} and {trees_per_row}")
@@ -306,6 +310,11 @@ def forest(seed: int = 0, rows: int = 10, trees_per_row: int = 20, row_spacing_m
         raise ConfigError(f"world.forest_border_m and world.forest_roughness_m must be >= 0 "
                           f"and world.forest_undergrowth in 0..1, got {border_m:g}, "
                           f"{roughness_m:g} and {undergrowth:g}")
+    if not 0 <= slope_percent <= 30 or not 0 <= foliage_depth_m <= 2:
+        raise ConfigError(f"world.forest_slope_percent must be in 0..30 and "
+                          f"world.forest_foliage_depth_m in 0..2, got {slope_percent:g} and "
+                          f"{foliage_depth_m:g}")
+    grade = slope_percent / 100.0
     rng = np.random.default_rng([seed, 3])
     b, g = MeshBuilder(), MeshBuilder()
     length = (trees_per_row + 1) * tree_spacing_m
@@ -317,7 +326,7 @@ def forest(seed: int = 0, rows: int = 10, trees_per_row: int = 20, row_spacing_m
     phase = rng.uniform(0, 2 * np.pi, 3)
     z = (0.25 * np.sin(2 * np.pi * gx / 23.0 + phase[0]) * np.cos(2 * np.pi * gy / period)
          + 0.25 * np.sin(2 * np.pi * gx / 37.0 + phase[1])
-         + roughness_m * rng.standard_normal(gx.shape))
+         + roughness_m * rng.standard_normal(gx.shape) + grade * gx)
     b.heightfield(xs, ys, z, SOIL)
     g.heightfield(xs, ys, z, SOIL)
     for r in range(rows):
@@ -326,13 +335,17 @@ def forest(seed: int = 0, rows: int = 10, trees_per_row: int = 20, row_spacing_m
             cy = (r + 1) * row_spacing_m + rng.normal(0, 0.12)
             radius = rng.uniform(0.08, 0.25)
             h = rng.uniform(7.0, 12.0)
-            b.cylinder((cx, cy), radius, -0.8, h, BARK, sides=10)
-            b.cone((cx, cy), rng.uniform(1.0, 1.6), 0.55 * h, h + 1.5, LEAVES, sides=10)
+            z0 = grade * cx  # the hillside under the tree (0 on flat ground)
+            b.cylinder((cx, cy), radius, z0 - 0.8, z0 + h, BARK, sides=10)
+            b.cone((cx, cy), rng.uniform(1.0, 1.6), z0 + 0.55 * h, z0 + h + 1.5, LEAVES,
+                   sides=10, scatter_depth_m=foliage_depth_m)
             if rng.random() < undergrowth:
-                b.cone((cx + rng.uniform(-1, 1), cy + rng.uniform(0.6, 1.2)), 0.5, -0.3, 0.9,
-                       LEAVES, sides=6)
+                sx = cx + rng.uniform(-1, 1)
+                b.cone((sx, cy + rng.uniform(0.6, 1.2)), 0.5, grade * sx - 0.3, grade * sx + 0.9,
+                       LEAVES, sides=6, scatter_depth_m=foliage_depth_m)
     if border_m > 0:
-        _wild_wood(b, rng, (-4.0, length + 4.0, 0.0, width), border_m + 5.0)
+        _wild_wood(b, rng, (-4.0, length + 4.0, 0.0, width), border_m + 5.0, grade,
+                   foliage_depth_m)
     lane = lambda r: (r + 1.5) * row_spacing_m  # noqa: E731
     x0, x1 = 1.5, length - 1.5
     loop = [(x0, lane(0)), (x1, lane(0)), (x1, lane(2)), (x0, lane(2))]
@@ -354,9 +367,11 @@ WILD_TREES_PER_M2 = 1 / 12.0  # as dense as the plantation
 WILD_SHRUBS_PER_M2 = 1 / 20.0
 
 
-def _wild_wood(b: MeshBuilder, rng: np.random.Generator, clear: tuple, margin_m: float) -> None:
+def _wild_wood(b: MeshBuilder, rng: np.random.Generator, clear: tuple, margin_m: float,
+               grade: float = 0.0, foliage_depth_m: float = 0.0) -> None:
     """Trees and shrubs at random in the band `margin_m` wide around the rectangle `clear`
-    (x0, x1, y0, y1), trees no closer than WILD_TREE_SPACING_M (dart throwing)."""
+    (x0, x1, y0, y1), trees no closer than WILD_TREE_SPACING_M (dart throwing), standing on
+    ground that climbs `grade` along x."""
     x0, x1, y0, y1 = clear
     lo, hi = np.array([x0 - margin_m, y0 - margin_m]), np.array([x1 + margin_m, y1 + margin_m])
     area = float(np.prod(hi - lo)) - (x1 - x0) * (y1 - y0)
@@ -373,12 +388,15 @@ def _wild_wood(b: MeshBuilder, rng: np.random.Generator, clear: tuple, margin_m:
         if not trees or np.min(np.linalg.norm(np.array(trees) - p, axis=1)) >= WILD_TREE_SPACING_M:
             trees.append(p)
     for p in trees:
-        h = rng.uniform(6.0, 14.0)
-        b.cylinder(p, rng.uniform(0.08, 0.3), -0.8, h, BARK, sides=10)
-        b.cone(p, rng.uniform(1.0, 2.2), rng.uniform(0.4, 0.7) * h, h + 1.5, LEAVES, sides=10)
+        h, z0 = rng.uniform(6.0, 14.0), grade * p[0]
+        b.cylinder(p, rng.uniform(0.08, 0.3), z0 - 0.8, z0 + h, BARK, sides=10)
+        b.cone(p, rng.uniform(1.0, 2.2), z0 + rng.uniform(0.4, 0.7) * h, z0 + h + 1.5, LEAVES,
+               sides=10, scatter_depth_m=foliage_depth_m)
     shrubs = rng.uniform(lo, hi, size=(int(area * WILD_SHRUBS_PER_M2 * 1.5), 2))
     for p in shrubs[outside(shrubs)][: int(area * WILD_SHRUBS_PER_M2)]:
-        b.cone(p, rng.uniform(0.4, 1.0), -0.3, rng.uniform(0.6, 1.6), LEAVES, sides=6)
+        z0 = grade * p[0]
+        b.cone(p, rng.uniform(0.4, 1.0), z0 - 0.3, z0 + rng.uniform(0.6, 1.6), LEAVES, sides=6,
+               scatter_depth_m=foliage_depth_m)
 
 
 PAPER_FOREST_MIN_ROWS = 8  # the route's serpentine climbs to lane 6 (between rows 6 and 7)

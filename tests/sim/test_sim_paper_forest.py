@@ -93,6 +93,20 @@ def test_the_walks_motion_is_smooth_and_consistent_with_its_rates(walk):
     assert speed.max() < 1.3 and np.median(speed) > 0.8
 
 
+def test_the_walk_climbs_a_hillside_turns_quickly_and_nods_at_each_step(walk):
+    from mcl3d.sim.trajectories import PAPER_FOREST_STEP_HZ
+
+    _, traj, _, T = walk
+    assert np.ptp(T[:, 2, 3]) > 3.0  # rows run down a 6 % slope: metres of climb per lane
+    t = np.arange(2.0, traj.duration_s - 2.0, 0.01)
+    k = traj.kinematics(t)
+    assert np.abs(k.w_base[:, 2]).max() > 1.2  # a walker turns round at a row's end
+    pitch_rate = k.w_base[:, 1] - k.w_base[:, 1].mean()
+    power = np.abs(np.fft.rfft(pitch_rate)) ** 2
+    hz = np.fft.rfftfreq(len(t), 0.01)
+    assert abs(hz[np.argmax(power)] - PAPER_FOREST_STEP_HZ) < 0.1
+
+
 def test_the_scenario_brings_its_wood_unless_the_config_sets_it():
     cfg = pipeline.SimConfig.model_validate({"world": {"forest_border_m": 5.0}})
     world = pipeline.with_scenario_world(cfg, "paper-forest").world
