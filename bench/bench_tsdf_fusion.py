@@ -397,11 +397,13 @@ def quality_rows(scans: LogScans, methods: dict, mesh_path: Path | None) -> list
 
 
 def fusion(scans: LogScans, repeats: int, columns: int, beams: int, mesh=None):
-    methods = {"mcl3d point-to-plane, range-image normals (default)": Ours(scans, "auto"),
-               "mcl3d point-to-plane, host KNN normals (before)": Ours(scans, "knn"),
-               "mcl3d projective (normals: none)": Ours(scans, "none"),
-               "Open3D (its block allocation)": Open3D(scans, False, columns, beams),
-               "Open3D (blocks from every point)": Open3D(scans, True, columns, beams)}
+    methods = {"mcl3d point-to-plane, device normals (default)": Ours(scans, "auto"),
+               "mcl3d point-to-plane, host KNN normals": Ours(scans, "knn"),
+               "mcl3d projective (normals: none)": Ours(scans, "none")}
+    if beams:  # Open3D integrates a spinning lidar's depth image: a Livox gives none
+        methods.update({"Open3D (its block allocation)": Open3D(scans, False, columns, beams),
+                        "Open3D (blocks from every point)": Open3D(scans, True, columns,
+                                                                   beams)})
     times = run_log(scans, methods, repeats)
     stages, totals = stage_rows(scans, methods, times, repeats)
     quality = quality_rows(scans, methods, mesh)
@@ -483,7 +485,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         log, mesh = simulated_log(folder, args.duration, args.world, args.sensor)
-        columns, beams = (1800, 16) if args.sensor == "vlp16" else (1024, 64)
+        columns, beams = {"vlp16": (1800, 16), "mid360": (0, 0)}.get(args.sensor, (1024, 64))
         inputs = [(LogScans(f"simulated {args.world}, {args.sensor}, {args.duration:g} s at "
                             "10 Hz", log), columns, beams, mesh)]
         traj = None if args.quick else ouster_trajectory(folder)

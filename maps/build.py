@@ -26,6 +26,7 @@ from mcl3d.maps.normals import oriented_normals
 from mcl3d.maps.scan_normals import RangeImageNormals, layout
 from mcl3d.maps.sparse_cells import cell_keys, tiles_of
 from mcl3d.maps.tsdf import BLOCK, CHUNK_CELLS, MIN_BUILD_TILES, MapGeometry, TsdfMap
+from mcl3d.maps.voxel_normals import fits, voxel_normals_of
 
 TRUNCATION_VOXELS = 4
 CPU_RUN_LENGTH = 64
@@ -48,10 +49,10 @@ class BuildConfig(Section):
     max_range_m: float = Field(120.0, gt=0.0, description="scan points farther are ignored")
     normals: str = Field("auto", pattern="^(auto|knn|none)$",
                          description="point-to-plane distances from normals estimated on the "
-                                     "device from a scan's range image (auto: scans with "
-                                     "rings, others as knn), or on the host from the k "
-                                     "nearest neighbours (knn); none: projective distance "
-                                     "along rays")
+                                     "device (auto: from the range image for scans with "
+                                     "rings, else from the k nearest in a voxel "
+                                     "neighbourhood), or on the host from the k nearest "
+                                     "neighbours (knn); none: projective distance along rays")
     normal_neighbors: int = Field(12, ge=4, le=64, description="neighbours for normals")
     scan_cache_mb: int = Field(
         512, ge=0, description="a log's decoded scans kept in memory between the pass that "
@@ -225,13 +226,17 @@ class ScanFuser:
 
     def normals(self, points_l: np.ndarray, rings: np.ndarray | None) -> np.ndarray:
         """Unit normals facing the sensor (zeros: none found, that point fuses
-        projectively): from the range image on the device when the scan has one (normals
-        auto), else from the k nearest neighbours on the host."""
-        shape = layout(points_l, rings) if self.config.normals == "auto" else None
-        if shape is not None:
-            return self._range_normals(points_l, rings, shape)
-        return oriented_normals(points_l, self.config.normal_neighbors, SENSOR_ORIGIN,
-                                self.config.orientation_cell_m)
+        projectively): with normals auto on the device, from the range image when the scan
+        has one, else from the k nearest in a voxel neighbourhood; with knn (or k beyond the
+        device search) from the k nearest neighbours on the host."""
+        k = self.config.normal_neighbors
+        if self.config.normals == "auto":
+            shape = layout(points_l, rings)
+            if shape is not None:
+                return self._range_normals(points_l, rings, shape)
+            if fits(points_l, k):
+                return voxel_normals_of(points_l, k)
+        return oriented_normals(points_l, k, SENSOR_ORIGIN, self.config.orientation_cell_m)
 
     def allocate(self, scan: PreparedScan) -> None:
         """Pass 1: allocate (and initialize) the blocks the scan's bands reach, and claim the
