@@ -42,6 +42,7 @@ from mcl3d.core.geometry import (
 from mcl3d.evaluation.consistency import weighted_pose_mean
 from mcl3d.kernels.scan_grid import MAX_K
 from mcl3d.kernels.slam import NEIGHBOURS, UNSCORED
+from mcl3d.maps.sparse_cells import unique_keys
 from mcl3d.odometry.lidar_odometry import LOST_COVARIANCE, LidarOdometry, OdometryFrame
 from mcl3d.registration.batch_gicp import BatchGicp
 from mcl3d.registration.gaussian_voxels import GaussianVoxelMaps
@@ -376,7 +377,8 @@ class MonteCarloSlam:
         last = self.frames.pose("T_motion_lidar", self.keyframe_frames[-1])
         in_last = transform_points(se3_inverse(last) @ T_motion_lidar, down)
         keys = voxel_keys(in_last, self.cfg.keyframes.overlap_voxel_m)
-        overlap = float(np.isin(keys, self._last_keys).mean())
+        at = np.minimum(np.searchsorted(self._last_keys, keys), len(self._last_keys) - 1)
+        overlap = float((self._last_keys[at] == keys).mean())
         return overlap < self.cfg.keyframes.overlap
 
     def _add_keyframe(self, down: np.ndarray, covs: np.ndarray, odom_position: np.ndarray,
@@ -391,7 +393,7 @@ class MonteCarloSlam:
         self.maps.clear(k, self.cfg.keyframes.voxel_m)
         self.maps.insert(k, pts, cv)
         self.keyframes.add(k, len(self.frames), down.astype(np.float32))
-        self._last_keys = np.unique(voxel_keys(down, self.cfg.keyframes.overlap_voxel_m))
+        self._last_keys = unique_keys(voxel_keys(down, self.cfg.keyframes.overlap_voxel_m))
 
     def _slot_to_reuse(self, loops: dict[int, tuple[int, ...]]) -> int:
         """The slot of the most redundant keyframe in the representative's map (see
