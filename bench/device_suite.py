@@ -1,7 +1,7 @@
 """The device suite's driver (run it through bench/device_suite.sh, which checks the GPU).
 
-Runs the localize, bench_commands (localize and SLAM whole commands), SLAM, batched GICP,
-fusion and odometry benchmarks in that order on one backend, each a child process with its
+Runs the localize, bench_commands (the whole localize command), SLAM, batched GICP,
+odometry and fusion benchmarks in that order on one backend, each a child process with its
 JSON redirected to bench/results/device_suite/ (MCL3D_BENCH_RESULTS), each under a time cap
 that keeps the whole suite within `--budget-s`; then merges them with the device's name and
 the papers' targets into bench/results/device_suite.json (cuda) or
@@ -14,6 +14,7 @@ import argparse
 import json
 import os
 import shutil
+import statistics
 import subprocess
 import sys
 import time
@@ -25,15 +26,14 @@ DEVICE_RESULTS = RESULTS / "device_suite"
 # name, arguments of the full suite, arguments of --quick, cap in s (full)
 SUITE = [
     ("bench_localize", ["--n", "100000", "1000000", "--m", "256", "1024", "--no-f16",
-                        "--repeats", "3"], ["--quick"], 100),
-    ("bench_commands", ["--commands", "localize", "slam", "--worlds", "office", "--duration",
-                        "10", "--slam-particles", "100000", "--threads", str(os.cpu_count())],
-     ["--quick", "--commands", "localize", "slam", "--particles", "20000",
-      "--slam-particles", "2000"], 150),
-    ("bench_slam", [], ["--quick"], 80),
+                        "--repeats", "3"], ["--quick"], 120),
+    ("bench_commands", ["--commands", "localize", "--worlds", "office", "--duration", "5",
+                        "--threads", str(os.cpu_count())],
+     ["--quick", "--commands", "localize", "--particles", "20000"], 90),
+    ("bench_slam", ["--particles", "10000", "100000", "--keyframes", "10"], ["--quick"], 90),
     ("bench_gicp", [], ["--quick"], 70),
-    ("bench_tsdf_fusion", [], ["--quick"], 70),
     ("bench_odometry", ["--quick"], ["--quick"], 80),
+    ("bench_tsdf_fusion", [], ["--quick"], 90),
 ]
 
 
@@ -86,12 +86,14 @@ def targets(benches: dict) -> list[dict]:
                                                .get("figures", {}).get("cases") or [])
                       if c["N"] == 100_000 and c["M"] == 1024), None)
     raw = benches.get("bench_commands", {}).get("figures", {}).get("raw") or {}
-    slam = next((v for k, v in raw.items() if k.endswith("/slam")), {})
+    slam = next((r for r in benches.get("bench_slam", {}).get("figures", {}).get("runs", [])
+                 if r.get("particles") == 100_000 and "error" not in r), {})
     rows = [("MCL update, 100,000 particles × 1,024 points (bench_localize)", update_ms, 5.0,
              "ms per update"),
-            (f"SLAM frame, whole step, {slam.get('particles', 100_000):,} particles "
-             "(bench_commands)", slam.get("ms_frame_mean") if slam.get("particles") == 100_000
-             else None, 50.0, "ms per frame")]
+            (f"SLAM frame, whole step, 100,000 particles, {slam.get('keyframes', 10)} "
+             "keyframes (bench_slam)",
+             statistics.median(f["wall_ms"] for f in slam["frames"]) if slam else None, 50.0,
+             "ms per frame")]
     for key, label in (("localize-global", "global"), ("localize-gt", "tracking")):
         v = next((v for k, v in raw.items() if k.endswith(key)), {})
         rows.append((f"localize command, {label} (bench_commands)", v.get("ms_update_mean"),

@@ -7,9 +7,9 @@
 #   bash bench/device_suite.sh                          # cuda, the full suite (< 8 min)
 #   bash bench/device_suite.sh --backend cpu --quick    # smoke test without a GPU
 #
-# Python: $PYTHON, else .venv/bin/python, else python3. Wheels in .whl/ (carried to a machine
-# without the project's environment) are installed offline into /tmp/site first. The
-# environment must hold mcl3d's dependencies (taichi, open3d, ...) and the bench extra.
+# Python: $PYTHON, else .venv/bin/python, else python3, with mcl3d's dependencies (taichi,
+# open3d, ...) and the bench extra; on a bare machine without a network, what
+# bench/device_pack.sh installed in /tmp/site (see there for the two calls).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -19,18 +19,23 @@ for ((i = 1; i <= $#; i++)); do
   if [[ "${!i}" == --backend=* ]]; then backend="${!i#--backend=}"; fi
 done
 
-if [[ -d .whl ]] && compgen -G ".whl/*.whl" > /dev/null; then
-  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
-    --target /tmp/site .whl/*.whl
+if [[ -d /tmp/site ]]; then  # a bare machine set up by bench/device_pack.sh --install
   export PYTHONPATH="/tmp/site:$PWD${PYTHONPATH:+:$PYTHONPATH}"
+  export LD_LIBRARY_PATH="/tmp/gllibs${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
 fi
 if [[ -z "${PYTHON:-}" ]]; then
   if [[ -x .venv/bin/python ]]; then PYTHON=.venv/bin/python; else PYTHON=python3; fi
 fi
 if ! "$PYTHON" -c "import taichi, mcl3d" > /dev/null 2>&1; then
   echo "device_suite: $PYTHON cannot import taichi and mcl3d; run 'bash setup.sh bench'" \
-    "on this machine, or set PYTHON to an environment that has them" >&2
+    "on this machine (bench/device_pack.sh on one without a network), or set PYTHON to an environment that has them" >&2
   exit 1
+fi
+if ! "$PYTHON" -c "import mcl3d.maps, mcl3d.kernels" > /dev/null 2>&1; then
+  # not installed (a bare machine): maps/ and kernels/ install as mcl3d.maps and
+  # mcl3d.kernels (pyproject.toml), so link them there for this run
+  ln -s ../maps mcl3d/maps && ln -s ../kernels mcl3d/kernels
+  trap 'rm -f mcl3d/maps mcl3d/kernels' EXIT
 fi
 
 if [[ "$backend" == "cuda" ]]; then
@@ -47,4 +52,4 @@ if [[ "$backend" == "cuda" ]]; then
   export MCL3D_DEVICE_NAME="$gpu"
 fi
 
-exec "$PYTHON" bench/device_suite.py "$@"
+"$PYTHON" bench/device_suite.py "$@"
