@@ -40,22 +40,26 @@ class Consistency:
 
 def weighted_pose_mean(poses: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(T_mean, 6x6 covariance) of poses (N, 4, 4) with weights (N,): the mean is the
-    fixed point of M <- M exp(Σ w_i log(M⁻¹ T_i)), started at the heaviest pose; the
-    covariance is Σ w_i ξ_i ξ_iᵀ of ξ_i = log(M⁻¹ T_i)."""
+    fixed point of M <- M exp(Σ w_i log(M⁻¹ T_i)), started at the heaviest pose's rotation
+    and the weighted mean position (one step fewer than from the heaviest pose); the
+    covariance is Σ w_i ξ_i ξ_iᵀ of ξ_i = log(M⁻¹ T_i), the last step's ξ once it converged
+    (each log of N poses is most of the cost: SLAM computes this every scan)."""
     poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
     w = np.asarray(weights, dtype=np.float64).ravel()
     if len(w) != len(poses) or len(w) == 0 or not np.all(w >= 0) or w.sum() <= 0:
         raise Mcl3dError("weighted_pose_mean needs one non-negative weight per pose, not all "
                          "zero")
     w = w / w.sum()
-    mean = poses[int(np.argmax(w))]
+    mean = poses[int(np.argmax(w))].copy()
+    mean[:3, 3] = w @ poses[:, :3, 3]
     for _ in range(MEAN_ITERATIONS):
         xi = se3_log(se3_inverse(mean) @ poses)
         step = w @ xi
-        mean = mean @ se3_exp(step)
         if np.max(np.abs(step)) < MEAN_TOLERANCE:
             break
-    xi = se3_log(se3_inverse(mean) @ poses)
+        mean = mean @ se3_exp(step)
+    else:
+        xi = se3_log(se3_inverse(mean) @ poses)
     xi -= w @ xi
     return mean, (xi * w[:, None]).T @ xi
 

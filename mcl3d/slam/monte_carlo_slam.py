@@ -157,8 +157,16 @@ def count_hypotheses(positions: np.ndarray, weights: np.ndarray, cell_m: float,
                      min_share: float = HYPOTHESIS_MIN_SHARE) -> int:
     """Grid cells of `cell_m` holding at least `min_share` of the weight."""
     cells = np.floor(positions / cell_m).astype(np.int64)
-    _, inverse = np.unique(cells, axis=0, return_inverse=True)
-    mass = np.bincount(inverse.ravel(), weights=weights)
+    cells -= cells.min(axis=0)
+    span = cells.max(axis=0) + 1
+    if float(np.prod(span.astype(np.float64))) < 2.0**62:  # one sortable int64 per cell
+        cells = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]
+        order = np.argsort(cells, kind="stable")
+        starts = np.flatnonzero(np.r_[True, cells[order][1:] != cells[order][:-1]])
+        mass = np.add.reduceat(np.asarray(weights, np.float64)[order], starts)
+    else:
+        _, inverse = np.unique(cells, axis=0, return_inverse=True)
+        mass = np.bincount(inverse.ravel(), weights=weights)
     return int(np.sum(mass >= min_share))
 
 
