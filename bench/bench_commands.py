@@ -127,7 +127,7 @@ def simulate(folder: Path, world: str, duration_s: float, env: dict) -> Path:
     return log
 
 
-NORMALS = "normals (range image on the device; host KNN without rings)"
+NORMALS = "normals (on the device: range image, or voxel neighbours without rings)"
 
 
 def build_map_stages(log: Path, out: Path) -> tuple[dict[str, float], int, float]:

@@ -155,7 +155,16 @@ def se3_log(T: np.ndarray) -> np.ndarray:
     """Tangent vectors (rotation first) of pose(s); inverse of `se3_exp`."""
     T = np.asarray(T, dtype=np.float64)
     w = so3_log(T[..., :3, :3])
-    v = np.linalg.solve(_so3_left_jacobian(w), T[..., :3, 3:4])[..., 0]
+    t = T[..., :3, 3]
+    # v = J⁻¹ t with the closed-form inverse left Jacobian I - K/2 + c K², K = [w]x,
+    # c = (1 - (θ/2) cot(θ/2)) / θ² (its series near 0; finite up to θ = π)
+    theta = np.linalg.norm(w, axis=-1)[..., None]
+    small = theta < 1e-2
+    half = np.where(small, 1.0, theta) / 2.0
+    c = np.where(small, 1.0 / 12.0 + theta**2 / 720.0 + theta**4 / 30240.0,
+                 (1.0 - half / np.tan(half)) / np.where(small, 1.0, theta) ** 2)
+    wt = np.cross(w, t)
+    v = t - 0.5 * wt + c * np.cross(w, wt)
     return np.concatenate([w, v], axis=-1)
 
 
