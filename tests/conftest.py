@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 import pytest
@@ -14,6 +15,17 @@ SHARED_DATA = TESTS.parents[1] / "shared" / "data"
 def pytest_addoption(parser):
     parser.addoption("--backend", default="cpu", choices=["cpu", "cuda", "vulkan"],
                      help="compute backend for Taichi tests (default: cpu)")
+
+
+@pytest.fixture(scope="module", autouse=True)
+def fresh_runtime_per_module():
+    """Each test file starts on a fresh Taichi runtime (same backend). Every map adds field
+    trees and kernels templated on it, and a runtime kept across a worker's files compiles
+    ever more slowly. Runs before the file's own module fixtures, which may hold fields."""
+    runtime = sys.modules.get("mcl3d.core.runtime")  # not imported yet: no runtime to restart
+    running = runtime.current() if runtime is not None else None
+    if running is not None and running.backend != "vulkan":  # lavapipe: see `on_vulkan`
+        runtime.restart()
 
 
 @pytest.fixture

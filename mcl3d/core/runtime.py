@@ -8,6 +8,7 @@ as GPU numbers.
 from __future__ import annotations
 
 import contextlib
+import gc
 import io
 import os
 import subprocess
@@ -30,7 +31,12 @@ class RuntimeInfo:
     requested: str  # what the user asked for
 
 
+# Taichi's on-disk kernel cache evicts the least recently used kernels above 100 MiB by
+# default; mcl3d's kernels (maps of several layouts, every backend) take more, so each
+# command recompiled what another had evicted (~2 cpu-s per build-map)
+KERNEL_CACHE_BYTES = 1 << 30
 _current: RuntimeInfo | None = None
+_options: dict = {}  # the keyword options `init` started the running runtime with
 
 
 def current() -> RuntimeInfo | None:
@@ -50,6 +56,7 @@ def _start(backend: str, offline_cache: bool, debug: bool) -> str:
                 default_fp=ti.f32,
                 default_ip=ti.i32,
                 offline_cache=offline_cache,
+                offline_cache_max_size_of_files=KERNEL_CACHE_BYTES,
                 debug=debug,
                 log_level=ti.ERROR,
                 enable_fallback=False,
@@ -103,8 +110,24 @@ def init(backend: str = "auto", *, offline_cache: bool = True, debug: bool = Fal
         arch_name = _start(candidate, offline_cache, debug)
         if _started_as(candidate, arch_name):
             _current = RuntimeInfo(candidate, _device_name(candidate), backend)
+            _options.update(offline_cache=offline_cache, debug=debug)
             return _current
     raise BackendUnavailable(_missing_message(backend), setting="backend")
+
+
+def restart() -> RuntimeInfo | None:
+    """Start the running runtime afresh, same request and options; None when none runs.
+
+    Every field and kernel of the old one is gone: objects holding them must not be used
+    again. Taichi compiles a kernel more slowly the more field trees a runtime holds, so a
+    process that builds many maps one after another (the test suite) restarts between them.
+    """
+    global _current
+    if _current is None:
+        return None
+    requested, _current = _current.requested, None
+    gc.collect()  # Taichi objects dropped since are freed by the runtime that made them
+    return init(requested, **_options)
 
 
 def loop_threads() -> int:

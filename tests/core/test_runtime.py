@@ -72,3 +72,24 @@ def test_cpu_and_vulkan_give_the_same_numbers(vulkan_runtime):
     np.testing.assert_allclose(on_cpu[:-1], reference, rtol=1e-5)
     np.testing.assert_allclose(on_vulkan[:-1], on_cpu[:-1], rtol=1e-6)
     assert abs(on_vulkan[-1] - on_cpu[-1]) / abs(on_cpu[-1]) < 1e-5
+
+
+def test_restart_starts_the_same_backend_afresh(ti_runtime):
+    """A new runtime, equal to the old one, where new fields work; the registration engine
+    kept at module level (fields of the old runtime) is built again, not reused."""
+    import taichi as ti
+
+    from mcl3d.registration import align
+
+    engine = align._get_engine(1, 100, 100)
+    after = runtime.restart()
+    assert after is not ti_runtime and after == ti_runtime and runtime.current() is after
+    assert align._get_engine(1, 100, 100) is not engine
+    values = ti.field(ti.i32, shape=4)
+    values.fill(7)
+    assert values.to_numpy().tolist() == [7, 7, 7, 7]
+
+
+def test_restart_without_a_runtime_starts_none(monkeypatch):
+    monkeypatch.setattr(runtime, "_current", None)
+    assert runtime.restart() is None and runtime.current() is None

@@ -15,17 +15,8 @@ from mcl3d.maps.build import BuildConfig
 def samples():
     """Surface samples of the tsdf test room seen from inside, and the viewpoints."""
     vertices, triangles = world.room_mesh()
-    rng = np.random.default_rng(0)
-    tri = vertices[triangles]
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    pick = rng.choice(len(tri), size=20000, p=area / area.sum())
-    a, b = rng.random((2, 20000, 1))
-    flip = (a + b) > 1
-    a, b = np.where(flip, 1 - a, a), np.where(flip, 1 - b, b)
-    t = tri[pick]
-    pts = t[:, 0] + a * (t[:, 1] - t[:, 0]) + b * (t[:, 2] - t[:, 0])
-    pts = pts[np.all((pts > -1e-3) & (pts < [6.001, 5.001, 3.001]), axis=1)]
-    return pts, np.array([T[:3, 3] for T in world.POSES])
+    pts = world.surface_samples(vertices, triangles, 20000, np.random.default_rng(0))
+    return world.seen_from_inside(pts), np.array([T[:3, 3] for T in world.POSES])
 
 
 def test_cube_cells_are_the_blocks_the_fusion_allocates(ti_runtime, samples):

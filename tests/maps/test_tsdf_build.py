@@ -60,6 +60,16 @@ def _fuse(room, scans, **overrides):
     return tsdf
 
 
+@pytest.fixture(scope="module")
+def fused(request, room, scans):
+    """The room fused from its scans with the default settings, built once for the tests
+    that only read it (each new map compiles the fusion kernels again)."""
+    from mcl3d.core import runtime
+
+    runtime.init(request.config.getoption("--backend"))  # the runtime `ti_runtime` keeps
+    return _fuse(room, scans)
+
+
 def test_mesh_map_is_exact_and_marks_free_space(ti_runtime, room):
     from mcl3d.maps.build import BuildConfig, build_from_mesh
 
@@ -74,8 +84,8 @@ def test_mesh_map_is_exact_and_marks_free_space(ti_runtime, room):
     assert len(free) > 100 and (free >= tsdf.truncation_m).all()
 
 
-def test_fused_scans_match_the_exact_distance(ti_runtime, room, scans):
-    tsdf = _fuse(room, scans)
+def test_fused_scans_match_the_exact_distance(room, fused):
+    tsdf = fused
     frac, n = _near_accuracy(tsdf, room[2])
     assert n > 10000
     assert frac > 0.95, f"only {frac:.3f} of near-surface voxels within half a voxel"
@@ -89,13 +99,13 @@ def test_fused_scans_match_the_exact_distance(ti_runtime, room, scans):
     assert (free > 0).mean() > 0.999
 
 
-def test_point_to_plane_beats_projective_distances(ti_runtime, room, scans):
-    plane, _ = _near_accuracy(_fuse(room, scans), room[2])
+def test_point_to_plane_beats_projective_distances(ti_runtime, room, scans, fused):
+    plane, _ = _near_accuracy(fused, room[2])
     projective, _ = _near_accuracy(_fuse(room, scans, normals="none"), room[2])
     assert plane > projective + 0.1
 
 
-def test_fused_surface_agrees_with_open3d_within_one_voxel(ti_runtime, room, scans):
+def test_fused_surface_agrees_with_open3d_within_one_voxel(room, scans, fused):
     import open3d as o3d
     import open3d.core as o3c
     import taichi as ti
@@ -103,7 +113,7 @@ def test_fused_surface_agrees_with_open3d_within_one_voxel(ti_runtime, room, sca
     from mcl3d.core.geometry import se3_inverse
     from mcl3d.kernels import tsdf_lookup as k
 
-    tsdf = _fuse(room, scans)
+    tsdf = fused
     voxel, trunc_vox = tsdf.voxel_size_m, tsdf.truncation_m / tsdf.voxel_size_m
     grid = o3d.t.geometry.VoxelBlockGrid(
         attr_names=("tsdf", "weight"), attr_dtypes=(o3c.float32, o3c.float32),
@@ -140,17 +150,8 @@ def test_points_map_from_surface_samples(ti_runtime, room):
     from mcl3d.maps.build import BuildConfig
     from mcl3d.maps.point_build import build_from_points
 
-    rng = np.random.default_rng(0)
-    tri = room[0][room[1]]
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    pick = rng.choice(len(tri), size=60000, p=area / area.sum())
-    a, b = rng.random((2, 60000, 1))
-    flip = (a + b) > 1
-    a, b = np.where(flip, 1 - a, a), np.where(flip, 1 - b, b)
-    t = tri[pick]
-    pts = t[:, 0] + a * (t[:, 1] - t[:, 0]) + b * (t[:, 2] - t[:, 0])
-    interior = np.all((pts > [-1e-3, -1e-3, -1e-3]) & (pts < [6.001, 5.001, 3.001]), axis=1)
-    pts = pts[interior]  # what a scanner inside the room could see
+    pts = world.surface_samples(room[0], room[1], 60000, np.random.default_rng(0))
+    pts = world.seen_from_inside(pts)
     viewpoints = np.array([T[:3, 3] for T in world.POSES])
     tsdf = build_from_points(pts, BuildConfig(), viewpoints=viewpoints)
     frac, n = _near_accuracy(tsdf, room[2])

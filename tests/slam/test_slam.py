@@ -11,6 +11,12 @@ from mcl3d.core import geometry
 from mcl3d.slam.slam_config import CorrectionConfig
 
 
+def slam_cli(*args):
+    """`mcl3d slam` in this process on the cpu backend, the runtime the other tests use:
+    another backend request would restart Taichi (and recompile) at each switch."""
+    return CliRunner().invoke(app, ["--backend", "cpu", "slam", *args])
+
+
 def room_cloud(rng) -> np.ndarray:
     """Walls, floor, ceiling and a few pillars of a 12 x 9 x 3 m room, in its own frame."""
     n = 6000
@@ -106,8 +112,8 @@ def test_slam_command_writes_every_output(forest_log, tmp_path, ti_runtime):
 
     out = tmp_path / "out"
     tsdf = tmp_path / "map.tsdf"
-    result = CliRunner().invoke(app, ["slam", str(forest_log), "-o", str(out), "--particles",
-                                      "200", "--tsdf", str(tsdf), "--seed", "3"])
+    result = slam_cli(str(forest_log), "-o", str(out), "--particles",
+                      "200", "--tsdf", str(tsdf), "--seed", "3")
     assert result.exit_code == 0, result.output
     assert "ATE SLAM" in result.output
     traj = read_tum(out / "slam.tum")
@@ -140,14 +146,14 @@ def test_slam_without_imu_and_interrupted_keeps_results(forest_log, tmp_path, ti
     from mcl3d.slam.monte_carlo_slam import MonteCarloSlam
 
     out = tmp_path / "noimu"
-    result = CliRunner().invoke(app, ["slam", str(forest_log), "-o", str(out), "--particles",
-                                      "100", "--no-imu", "--max-scans", "20"])
+    result = slam_cli(str(forest_log), "-o", str(out), "--particles",
+                      "100", "--no-imu", "--max-scans", "20")
     assert result.exit_code == 0, result.output
     assert "constant velocity" in result.output
     assert len(read_tum(out / "slam.tum")) == 20
     again = tmp_path / "noimu_again"
-    result = CliRunner().invoke(app, ["slam", str(forest_log), "-o", str(again), "--particles",
-                                      "100", "--no-imu", "--max-scans", "20"])
+    result = slam_cli(str(forest_log), "-o", str(again), "--particles",
+                      "100", "--no-imu", "--max-scans", "20")
     assert result.exit_code == 0, result.output
     for name in ("slam.tum", "slam_online.tum", "odometry.tum", "map.ply"):  # reproducible
         assert (out / name).read_bytes() == (again / name).read_bytes(), name
@@ -161,8 +167,7 @@ def test_slam_without_imu_and_interrupted_keeps_results(forest_log, tmp_path, ti
 
     monkeypatch.setattr(MonteCarloSlam, "step", interrupted)
     out2 = tmp_path / "interrupted"
-    result = CliRunner().invoke(app, ["slam", str(forest_log), "-o", str(out2), "--particles",
-                                      "100", "--max-scans", "30"])
+    result = slam_cli(str(forest_log), "-o", str(out2), "--particles", "100", "--max-scans", "30")
     assert isinstance(result.exception, RunInterrupted)  # the app exits 130 on it
     assert "after 12 scans" in str(result.exception)
     assert len(read_tum(out2 / "slam.tum")) == 12
@@ -173,13 +178,12 @@ def test_slam_bad_input_is_one_error(tmp_path, forest_log, ti_runtime):
     """Each is an Mcl3dError (the app prints it as one line and exits 1), nothing written."""
     from mcl3d.core.errors import Mcl3dError
 
-    runner = CliRunner()
     cases = [([str(tmp_path / "nope.mcap")], "nope.mcap"),
              ([str(forest_log), "--points-topic", "/nothing"], "/nothing"),
              ([str(forest_log), "--particles", "0"], "particles")]
     for k, (args, needle) in enumerate(cases):
         out = tmp_path / f"o{k}"
-        result = runner.invoke(app, ["slam", *args, "-o", str(out)])
+        result = slam_cli(*args, "-o", str(out))
         assert isinstance(result.exception, Mcl3dError), result.output
         assert needle in str(result.exception)
         assert not out.exists()
@@ -255,8 +259,8 @@ def test_slam_preset_paper_and_an_unknown_preset(forest_log, tmp_path, ti_runtim
     from mcl3d.core.errors import ConfigError
 
     out = tmp_path / "paper"
-    result = CliRunner().invoke(app, ["slam", str(forest_log), "-o", str(out), "--particles",
-                                      "100", "--max-scans", "15", "--preset", "paper"])
+    result = slam_cli(str(forest_log), "-o", str(out), "--particles",
+                      "100", "--max-scans", "15", "--preset", "paper")
     assert result.exit_code == 0, result.output
     saved = yaml.safe_load((out / "slam_config.yaml").read_text())
     assert saved["particles"] == 100
@@ -264,8 +268,7 @@ def test_slam_preset_paper_and_an_unknown_preset(forest_log, tmp_path, ti_runtim
     assert saved["loop_closure"]["facing_gate"] is False
     assert saved["prediction_noise"]["odometry_scale"] == 1.0
     bad = tmp_path / "bad"
-    result = CliRunner().invoke(app, ["slam", str(forest_log), "-o", str(bad), "--preset",
-                                      "nope"])
+    result = slam_cli(str(forest_log), "-o", str(bad), "--preset", "nope")
     assert isinstance(result.exception, ConfigError)
     assert "default, paper" in str(result.exception) and not bad.exists()
 
@@ -334,8 +337,8 @@ def test_a_run_that_fills_every_keyframe_goes_on_and_says_so(forest_log, tmp_pat
     config = tmp_path / "small.yaml"
     config.write_text("keyframes:\n  capacity: 2\n  overlap: 0.99\n")
     out = tmp_path / "out"
-    result = CliRunner().invoke(app, ["slam", str(forest_log), "-o", str(out), "--particles",
-                                      "100", "--seed", "3", "--config", str(config)])
+    result = slam_cli(str(forest_log), "-o", str(out), "--particles",
+                      "100", "--seed", "3", "--config", str(config))
     assert result.exit_code == 0, result.output
     summary = json.loads((out / "slam_summary.json").read_text())
     assert summary["keyframes"] == 2 and summary["scans"] == 50

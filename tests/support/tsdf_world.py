@@ -38,6 +38,24 @@ def room_mesh() -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(mesh.vertices), np.asarray(mesh.triangles)
 
 
+def surface_samples(vertices: np.ndarray, triangles: np.ndarray, n: int,
+                    rng: np.random.Generator) -> np.ndarray:
+    """`n` points uniform over the mesh's surface (triangles picked by area)."""
+    tri = vertices[triangles]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    pick = rng.choice(len(tri), size=n, p=area / area.sum())
+    a, b = rng.random((2, n, 1))
+    flip = (a + b) > 1  # fold the far half of the unit square back into the triangle
+    a, b = np.where(flip, 1 - a, a), np.where(flip, 1 - b, b)
+    t = tri[pick]
+    return t[:, 0] + a * (t[:, 1] - t[:, 0]) + b * (t[:, 2] - t[:, 0])
+
+
+def seen_from_inside(pts: np.ndarray) -> np.ndarray:
+    """The points of the room's inner faces and boxes: what a scanner inside it could see."""
+    return pts[np.all((pts > -1e-3) & (pts < [6.001, 5.001, 3.001]), axis=1)]
+
+
 def pose(x, y, z, yaw) -> np.ndarray:
     c, s = np.cos(yaw), np.sin(yaw)
     T = np.eye(4)
