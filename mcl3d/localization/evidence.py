@@ -24,29 +24,48 @@ them) by a few nats per hundred scans. So a place is ruled out only when it fall
 more than that noise can explain: `noise_margin`, from the spread between two disjoint
 draws of the same place's particles, grows with the square root of the scans and with the
 number of places compared.
+
+All of it runs on the device (kernels/place_evidence.py): per update only the number of
+places, the noise statistic, the live places and the rival test's two maxima come back
+(a few dozen bytes, whatever the particle count).
 """
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+import taichi as ti
 
-from mcl3d.localization.estimate import label_particles
+from mcl3d.core import geometry
+from mcl3d.core.errors import ConfigError
+from mcl3d.kernels import place_evidence as kpe
+from mcl3d.kernels.particle_stats import gather_values
+from mcl3d.localization.particle_set import ParticleSet
 
-CELL_BITS = 18  # per position axis of the place key (2^18 cells of place_cell_m)
+MAX_PLACE_KEYS = 1 << 64  # cells x yaw bins of the particles' bounding box (u64 keys)
 
 
 class PlaceEvidence:
-    """Accumulated tempered log-likelihood per particle (host, float64); see the module."""
+    """Accumulated tempered log-likelihood per particle (device, f32) and the places of the
+    last update; see the module."""
 
-    def __init__(self) -> None:
-        self.log_l = np.zeros(0)
+    def __init__(self, capacity: int) -> None:
+        self.fields = kpe.PlaceFields(capacity)
+        self.log_l = ti.field(ti.f32, shape=capacity)
+        self._log_l_back = ti.field(ti.f32, shape=capacity)
+        self.n = 0  # particles the evidence is for
         self.scans = 0  # scans accumulated since the last reset
         self.variance = 0.0  # summed per-scan variance of a place's increment, nats^2
+        self.places = 0  # places of the last update
+        self._sorted = 0  # the sort buffer holding the last update's places
 
     def reset(self, n: int) -> None:
-        self.log_l = np.zeros(n)
+        self.n = int(n)
         self.scans = 0
         self.variance = 0.0
+        self.places = 0
+        self.log_l.fill(0.0)
 
     def noise_margin(self, places: int, false_alarm: float = 0.01) -> float:
         """Nats by which one of `places` equally good places may trail the best by chance:
@@ -54,107 +73,82 @@ class PlaceEvidence:
         z = np.sqrt(2.0 * np.log(max(places, 2) / false_alarm))
         return float(z * np.sqrt(2.0 * self.variance))
 
-    def add(self, increment: np.ndarray, places: np.ndarray, sample: int,
-            rng: np.random.Generator, leaders_nats: float = 10.0) -> None:
-        """One scan: each place continues from the best evidence among its particles, plus
+    def add(self, p: ParticleSet, scale: float, cell_m: float, yaw_bins: int, sample: int,
+            seed: int, counter: int, leaders_nats: float = 10.0) -> None:
+        """One scan, increments scale * p.ll_mean: each place (a cell of `cell_m` and
+        360/`yaw_bins` degrees) continues from the best evidence among its particles, plus
         the best increment among `sample` of its particles drawn at random (so a place
         with many particles does not win the maximum by their number alone). The places
-        within `leaders_nats` of the best measure this scan's noise."""
-        if len(self.log_l) != len(increment):
-            self.reset(len(increment))
-        k = int(places.max()) + 1
-        prior = np.full(k, -np.inf)
-        np.maximum.at(prior, places, self.log_l)
-        order = np.lexsort((rng.random(len(places)), places))
-        first = np.searchsorted(places[order], np.arange(k))
-        rank = np.empty(len(places), np.int64)
-        rank[order] = np.arange(len(places)) - first[places[order]]
-        best_inc = _best_of(places, increment, rank < sample, k)
-        second = _best_of(places, increment, (rank >= sample) & (rank < 2 * sample), k)
-        leaders = (prior >= prior.max() - leaders_nats) & np.isfinite(second)
-        self._add_variance(best_inc[leaders] - second[leaders])
-        self.log_l = (prior + best_inc)[places]
+        within `leaders_nats` of the best measure this scan's noise. The draw is keyed by
+        (seed, counter)."""
+        if self.n != p.n:
+            self.reset(p.n)
+        f, n = self.fields, p.n
+        kpe.place_cells(p.pos, p.quat, n, cell_m, yaw_bins, f)
+        lo, hi = f.bounds.to_numpy().astype(np.int64)
+        dims = hi - lo + 1
+        keys = math.prod(int(d) for d in dims)
+        if keys > MAX_PLACE_KEYS:
+            raise ConfigError(
+                f"the particles spread over {keys:,} place cells (more than 2^64); raise "
+                f"resample.place_cell_m ({cell_m} m) or place_yaw_deg", setting="resample")
+        kpe.place_keys(f, n, ti.math.ivec4(*dims.tolist()), seed, counter)
+        src = 0
+        for word, bits in ((0, kpe.RAND_BITS), (1, (keys - 1).bit_length())):
+            for shift in range(0, bits, 8):
+                kpe.radix_pass(f, n, src, word, shift)
+                src = 1 - src
+        kpe.place_runs(f, n, src)
+        kpe.place_scores(f, n, src, self.log_l, p.ll_mean, scale, sample)
+        kpe.noise_mad(f, leaders_nats)
+        out = f.out.to_numpy()
+        self.places = int(out[kpe.OUT_PLACES])
+        if out[kpe.OUT_LEADERS] > 0:  # robust: the MAD over the leading places
+            self.variance += float((1.4826 * float(out[kpe.OUT_MAD])) ** 2 / 2.0)
         self.scans += 1
+        self._sorted = src
 
-    def _add_variance(self, differences: np.ndarray) -> None:
-        """This scan's sampling noise of a place's increment: half the variance of the
-        difference between the best of two disjoint draws from the same place (robust: the
-        MAD over the leading places), so real differences between places do not count."""
-        if len(differences):
-            mad = np.median(np.abs(differences - np.median(differences)))
-            self.variance += float((1.4826 * mad) ** 2 / 2.0)
+    def floor(self, p: ParticleSet, margin_nats: float, min_particles: int) -> int:
+        """The live places of the last `add` (evidence within `margin_nats` of the best
+        one, and weight); when there are two or more, p.factor = resampling factors that
+        give each at least `min_particles` expected copies (at most half the particles go
+        to such floors). Returns the number of live places.
 
-    def inherit(self, parent: np.ndarray) -> None:
-        """After resampling: child i continues the evidence of particle `parent[i]`."""
-        if len(self.log_l):
-            self.log_l = self.log_l[parent]
+        Resampling by weight alone lets a look-alike place whose cluster weight drifted low
+        die by chance, and a dead place can never win again; with these factors (applied
+        as weight * factor, each copy carrying -log(factor), see `resampling`) a place dies
+        only when the scans rule it out.
+        """
+        f = self.fields
+        kpe.place_weights(f, self._sorted, p.w, margin_nats)
+        live = int(f.out[kpe.OUT_LIVE])
+        if live >= 2:
+            kpe.place_floor(f, p.n, min(min_particles / p.n, 0.5 / live), p.factor)
+        return live
 
+    def rival_gap(self, p: ParticleSet, T_dominant: np.ndarray, radius_m: float,
+                  angle_rad: float) -> float:
+        """Best evidence among particles away from the dominant pose (farther than
+        `radius_m` or turned more than `angle_rad`) minus the best within `radius_m / 2`
+        and `angle_rad / 2` of it: > -margin means another place still explains the scans.
+        -inf when every particle is near the dominant pose, +inf when none is close to it."""
+        if self.n != p.n or not p.n:
+            return -np.inf
+        t, q = geometry.tq_from_se3(np.asarray(T_dominant, np.float64))
+        kpe.rival_bests(p.pos, p.quat, self.log_l, p.n, ti.math.vec3(*t), ti.math.vec4(*q),
+                        radius_m, math.cos(0.5 * min(0.5 * angle_rad, math.pi)),
+                        math.cos(0.5 * min(angle_rad, math.pi)), self.fields)
+        out = self.fields.out.to_numpy()
+        if out[kpe.OUT_N_AWAY] == 0:
+            return -np.inf
+        if out[kpe.OUT_N_INSIDE] == 0:  # no particle (with evidence) at the mean: no verdict
+            return np.inf
+        return float(out[kpe.OUT_AWAY]) - float(out[kpe.OUT_INSIDE])
 
-def _best_of(places: np.ndarray, values: np.ndarray, drawn: np.ndarray, k: int) -> np.ndarray:
-    best = np.full(k, -np.inf)
-    np.maximum.at(best, places[drawn], values[drawn])
-    return best
-
-
-def place_labels(positions: np.ndarray, quats_xyzw: np.ndarray, cell_m: float,
-                 yaw_bins: int) -> np.ndarray:
-    """A place index (0..k-1) per particle: its cell of `cell_m` in x, y, z and of
-    360/`yaw_bins` degrees of yaw (look-alike places are apart in position or heading)."""
-    q = np.asarray(quats_xyzw, np.float64)
-    yaw = np.arctan2(2.0 * (q[:, 3] * q[:, 2] + q[:, 0] * q[:, 1]),
-                     1.0 - 2.0 * (q[:, 1] ** 2 + q[:, 2] ** 2))
-    yaw_bin = np.floor((yaw + np.pi) / (2.0 * np.pi) * yaw_bins).astype(np.int64) % yaw_bins
-    cells = np.floor(positions / cell_m).astype(np.int64) + (1 << (CELL_BITS - 1))
-    key = yaw_bin
-    for axis in range(3):
-        key = (key << CELL_BITS) | (cells[:, axis] & ((1 << CELL_BITS) - 1))
-    return np.unique(key, return_inverse=True)[1].ravel()
-
-
-def rival_gap(positions: np.ndarray, quats_xyzw: np.ndarray, log_l: np.ndarray,
-              T_dominant: np.ndarray, radius_m: float, angle_rad: float) -> float:
-    """Best evidence among particles away from the dominant pose (farther than `radius_m`
-    or turned more than `angle_rad`) minus the best within `radius_m / 2` and `angle_rad / 2`
-    of it: > -margin means another place still explains the scans. -inf when every particle
-    is near the dominant pose, +inf when none is close to it."""
-    if len(log_l) != len(positions) or not len(log_l):
-        return -np.inf
-    inside = label_particles(positions, quats_xyzw, [T_dominant], 0.5 * radius_m,
-                             0.5 * angle_rad) == 0
-    away = label_particles(positions, quats_xyzw, [T_dominant], radius_m, angle_rad) < 0
-    if not away.any():
-        return -np.inf
-    best_inside = log_l[inside].max() if inside.any() else -np.inf
-    if best_inside == -np.inf:  # no particle (with evidence) at the mean: no verdict
-        return np.inf
-    return float(log_l[away].max() - best_inside)
-
-
-def place_floor(labels: np.ndarray, weights: np.ndarray, log_l: np.ndarray,
-                margin_nats: float, min_particles: int) -> tuple[np.ndarray, int]:
-    """Resampling factors that give every place whose evidence is within `margin_nats` of
-    the best one at least `min_particles` expected copies (at most half the particles go
-    to such floors), and the number of such live places.
-
-    Resampling by weight alone lets a look-alike place whose cluster weight drifted low die
-    by chance, and a dead place can never win again; with these factors (applied as
-    weight * factor, each copy carrying -log(factor), see `resampling`) a place dies only
-    when the scans rule it out.
-    """
-    n = len(weights)
-    w = np.asarray(weights, np.float64) / np.sum(weights)
-    k = int(labels.max()) + 1
-    best = np.full(k, -np.inf)
-    np.maximum.at(best, labels, log_l)
-    place_w = np.bincount(labels, weights=w, minlength=k)
-    live = (best >= log_l.max() - margin_nats) & (place_w > 0)
-    factors = np.ones(n)
-    n_live = int(live.sum())
-    if n_live < 2:
-        return factors, n_live
-    share = min(min_particles / n, 0.5 / n_live)  # the floor of each live place
-    place_f = np.ones(k)
-    for _ in range(3):  # the floors' total changes the normalization they are relative to
-        total = float(w @ place_f[labels])
-        place_f[live] = np.maximum(1.0, share * total / place_w[live])
-    return place_f[labels], n_live
+    def inherit(self, parent, n_out: int) -> None:
+        """After resampling: child k continues the evidence of particle `parent[k]` (a
+        device field)."""
+        if self.n:
+            gather_values(self.log_l, parent, n_out, self._log_l_back)
+            self.log_l, self._log_l_back = self._log_l_back, self.log_l
+            self.n = int(n_out)

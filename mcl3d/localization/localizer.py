@@ -2,10 +2,11 @@
 
 One step reads as the algorithm: predict (motion update, kernel) -> weigh (scan likelihood
 and weights, kernels) -> estimate (the dominant cluster of a weighted subsample drawn on the
-device, host; while tracking no per-particle array leaves the device, see `particle_stats`) ->
-loss check -> resample (systematic, kernels, when the ESS is low; optionally KLD-sampling;
-mode-preserving during a global search, see `search`) -> recover (re-seed part of the cloud
-when the filter has lost track, see `recovery`).
+device, host; a global search's place evidence on the device, see `evidence`; no
+per-particle array leaves the device, see `particle_stats`) -> loss check -> resample
+(systematic, kernels, when the ESS is low; optionally KLD-sampling; mode-preserving during a
+global search, see `search`) -> recover (re-seed part of the cloud when the filter has lost
+track, see `recovery`).
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from mcl3d.core.errors import InputError, MapError
 from mcl3d.kernels import motion
 from mcl3d.kernels import particles as kp
 from mcl3d.localization.estimate import PoseEstimate, WeightedParticles, estimate_from_sample
-from mcl3d.localization.evidence import PlaceEvidence, place_labels, rival_gap
+from mcl3d.localization.evidence import PlaceEvidence
 from mcl3d.localization.initialization import FreeCells, free_cells
 from mcl3d.localization.localization_config import LocalizerConfig
 from mcl3d.localization.particle_set import ParticleSet
@@ -34,7 +35,7 @@ from mcl3d.localization.particle_stats import (
 )
 from mcl3d.localization.random_streams import (
     ESTIMATE_SAMPLE_STREAM,
-    EVIDENCE_SAMPLE_STREAM,
+    EVIDENCE_COUNTER,
     INIT_GLOBAL_COUNTER,
     INIT_POSE_COUNTER,
     KLD_SAMPLE_STREAM,
@@ -88,8 +89,8 @@ class Localizer:
         self.sampler = ParticleSampler(config.estimate.samples)
         self.search = GlobalSearch(config, self.sampler)
         self.recovery = Recovery(config.recovery)
-        self.evidence = PlaceEvidence()
-        self._places: np.ndarray | None = None  # place label per particle, this update
+        self.evidence = PlaceEvidence(config.particles)
+        self._places = False  # whether this update added to the places' evidence
         self.weigher = ScanWeigher(tsdf, config.sensor, config.particles)
         self._free: FreeCells | bool | None = None  # False: the map has no candidates
         self._init_step = 0  # step_index of the last (re-)initialization
@@ -199,9 +200,8 @@ class Localizer:
         weights = compute_weights(self.particles)
         stats = cloud_stats(self.particles, weights.total)
         timer.lap("weights")
-        cloud = self._search_cloud(weights, coarse_sigma)
-        self._gather_evidence(cloud, len(pts), coarse_sigma)
-        estimate, state = self._estimate(cloud, stats, weights)
+        self._gather_evidence(len(pts), coarse_sigma)
+        estimate, state = self._estimate(stats, weights)
         timer.lap("estimate")
         state, reseed = self._check_loss(estimate, state)
         if reseed == "global" and not self._can_seed_globally():
@@ -270,30 +270,19 @@ class Localizer:
         if min_ess > 0 and not self.ever_converged:
             anneal(self.particles, s.increment_scale(len(pts)), min_ess)
 
-    def _search_cloud(self, weights: Weights, coarse_sigma: float | None
-                      ) -> WeightedParticles | None:
-        """Every particle on the host, only while a global search gathers the places'
-        evidence (`evidence`, host); None otherwise."""
-        if not self.ever_converged and coarse_sigma is None:
-            return self.particles.weighted_host(weights.total)
-        return None
-
-    def _gather_evidence(self, cloud: WeightedParticles | None, n_points: int,
-                         coarse_sigma: float | None) -> None:
-        """Each place's evidence, while searching (see `evidence`); the coarse model is a
-        search heuristic, not evidence."""
+    def _gather_evidence(self, n_points: int, coarse_sigma: float | None) -> None:
+        """Each place's evidence, while searching (see `evidence`, on the device); the
+        coarse model is a search heuristic, not evidence."""
         r = self.cfg.resample
-        self._places = None
-        if self.ever_converged or coarse_sigma is not None:
+        self._places = not self.ever_converged and coarse_sigma is None
+        if not self._places:
             return
-        self._places = place_labels(cloud.positions, cloud.quats_xyzw, r.place_cell_m,
-                                    round(360.0 / r.place_yaw_deg))
-        self.evidence.add(self.cfg.sensor.increment_scale(n_points) * cloud.mean_ll,
-                          self._places, max(r.place_min_particles, 1),
-                          host_rng(self.seed, self.step_index, EVIDENCE_SAMPLE_STREAM),
-                          r.place_margin_nats)
+        self.evidence.add(self.particles, self.cfg.sensor.increment_scale(n_points),
+                          r.place_cell_m, round(360.0 / r.place_yaw_deg),
+                          max(r.place_min_particles, 1), self.seed,
+                          kernel_counter(self.step_index, EVIDENCE_COUNTER), r.place_margin_nats)
 
-    def _estimate(self, cloud: WeightedParticles | None, stats: CloudStats, weights: Weights
+    def _estimate(self, stats: CloudStats, weights: Weights
                   ) -> tuple[PoseEstimate, FilterState]:
         """The dominant cluster and the filter's state (a global search converges only
         after the coarse phase, with no rival mode, after motion)."""
@@ -310,9 +299,8 @@ class Localizer:
             estimate = replace(estimate, T_map_lidar=T_mean, covariance=covariance)
         self.search.update_modes(p, weights.total, estimate.clusters,
                                  host_rng(self.seed, self.step_index, MODE_SAMPLE_STREAM),
-                                 None if self._places is None else (
-                                     self._places, cloud.weights, self.evidence))
-        rival = self._rival_explains_scans(cloud, estimate)
+                                 self.evidence if self._places else None)
+        rival = self._rival_explains_scans(estimate)
         converged = estimate.dominant and not rival
         if self.search.active:
             converged = self.search.converged(converged)
@@ -324,14 +312,14 @@ class Localizer:
             return estimate, FilterState.AMBIGUOUS
         return estimate, FilterState.INITIALIZING
 
-    def _rival_explains_scans(self, cloud: WeightedParticles, estimate: PoseEstimate) -> bool:
+    def _rival_explains_scans(self, estimate: PoseEstimate) -> bool:
         """Whether a place away from the dominant cluster explains the scans within the
         sampling noise (or `rival_margin_nats`) of the dominant's best (see `evidence`)."""
         e = self.cfg.estimate
-        if e.rival_margin_nats <= 0 or self._places is None:
+        if e.rival_margin_nats <= 0 or not self._places:
             return False
-        gap = rival_gap(cloud.positions, cloud.quats_xyzw, self.evidence.log_l,
-                        estimate.T_map_lidar, 2 * e.cluster_radius_m, 2 * e.cluster_angle_rad)
+        gap = self.evidence.rival_gap(self.particles, estimate.T_map_lidar,
+                                      2 * e.cluster_radius_m, 2 * e.cluster_angle_rad)
         live = max(self.search.live_places, 2)
         return gap > -max(e.rival_margin_nats, self.evidence.noise_margin(live))
 
@@ -368,7 +356,7 @@ class Localizer:
         u0 = float(host_rng(self.seed, counter, RESAMPLE_OFFSET_STREAM).random())
         resample(p, n_out, weights, u0, floored, keep_posterior=not self.search.exploring)
         if self.evidence.scans and not self.ever_converged:
-            self.evidence.inherit(p.parent.to_numpy()[:n_out])
+            self.evidence.inherit(p.parent, n_out)
 
     def _recover(self, how: Reseed, T_estimate: np.ndarray) -> None:
         """Re-seed: around the estimate (clipped into the map), or over the free space."""

@@ -15,11 +15,11 @@ import taichi as ti
 
 from mcl3d.core.errors import ConfigError
 from mcl3d.kernels.resample import SCAN_BLOCK
-from mcl3d.localization.estimate import WeightedParticles
 
 MAX_PARTICLES = 8_000_000  # one parallel loop must stay under Vulkan's 8M-iteration limit
 # two pose buffers + log_w, w, cdf, parent, match, ll, factor, label + locality key and order
-BYTES_PER_PARTICLE = 2 * (12 + 16) + 8 * 4 + 2 * 4
+# + the place evidence's sort buffers, place fields and log-likelihoods (88 bytes)
+BYTES_PER_PARTICLE = 2 * (12 + 16) + 8 * 4 + 2 * 4 + 88
 
 
 def available_memory_bytes() -> int | None:
@@ -82,16 +82,6 @@ class ParticleSet:
         """(positions (n, 3), quaternions xyzw (n, 4), log-weights (n,)) as numpy copies."""
         n = self.n
         return (self.pos.to_numpy()[:n], self.quat.to_numpy()[:n], self.log_w.to_numpy()[:n])
-
-    def weighted_host(self, total_weight: float) -> WeightedParticles:
-        """The particles in use on the host, with the weights in `w` divided by their sum."""
-        n = self.n
-        return WeightedParticles(
-            positions=self.pos.to_numpy()[:n].astype(np.float64),
-            quats_xyzw=self.quat.to_numpy()[:n].astype(np.float64),
-            weights=self.w.to_numpy()[:n].astype(np.float64) / total_weight,
-            match=self.match.to_numpy()[:n].astype(np.float64),
-            mean_ll=self.ll_mean.to_numpy()[:n].astype(np.float64))
 
     def set_host(self, positions: np.ndarray, quats_xyzw: np.ndarray,
                  log_w: np.ndarray | None = None) -> None:

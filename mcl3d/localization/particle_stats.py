@@ -179,15 +179,11 @@ class ClusterLabels:
         ks.sum_vector_partials(self._partial, p.n, self._sum)
         return self._sum.to_numpy()[0, :c].astype(np.float64) / total_weight
 
-    def apply(self, p: ParticleSet, table: np.ndarray, place_factors: np.ndarray | None
-              ) -> None:
+    def apply(self, p: ParticleSet, table: np.ndarray, keep_place_factors: bool) -> None:
         """p.factor = table[label + 1] (`estimate.mode_floor_table`), or the larger of that
-        and the per-particle `place_factors` (`evidence.place_floor`, host)."""
-        if place_factors is not None:
-            host = np.ones(p.capacity, np.float32)
-            host[:len(place_factors)] = place_factors
-            p.factor.from_numpy(host)
+        and the place factors already in p.factor (`PlaceEvidence.floor`) when
+        `keep_place_factors`."""
         padded = np.ones(kc.MAX_CENTRES + 1, np.float32)
         padded[:len(table)] = table
         self._table.from_numpy(padded)
-        kc.label_factors(p.label, p.n, self._table, int(place_factors is not None), p.factor)
+        kc.label_factors(p.label, p.n, self._table, int(keep_place_factors), p.factor)

@@ -11,11 +11,11 @@ COUNTERS_PER_UPDATE = 8  # kernel counter = update * 8 + one of the salts below
 MOTION_COUNTER = 0  # the motion noise; also keys the scan subset and the resampling offset
 INIT_GLOBAL_COUNTER = 1  # particles drawn over the map's free space
 INIT_POSE_COUNTER = 2  # particles drawn around a pose
+EVIDENCE_COUNTER = 3  # the particles of each place that judge a scan (place evidence)
 
 ESTIMATE_SAMPLE_STREAM = 3  # the weighted subsample that the estimate clusters
 MODE_SAMPLE_STREAM = 4  # the uniform subsample that finds populous modes
 KLD_SAMPLE_STREAM = 5  # the weighted subsample that counts KLD bins
-EVIDENCE_SAMPLE_STREAM = 6  # the particles of each place that judge a scan (evidence)
 RESAMPLE_OFFSET_STREAM = 7  # the offset of systematic resampling
 
 

@@ -20,7 +20,7 @@ from mcl3d.localization.estimate import (
     cluster_hypotheses,
     mode_floor_table,
 )
-from mcl3d.localization.evidence import PlaceEvidence, place_floor
+from mcl3d.localization.evidence import PlaceEvidence
 from mcl3d.localization.localization_config import LocalizerConfig
 from mcl3d.localization.particle_set import ParticleSet
 from mcl3d.localization.particle_stats import ClusterLabels, ParticleSampler, tempered_ess
@@ -76,8 +76,7 @@ class GlobalSearch:
 
     def update_modes(self, p: ParticleSet, total_weight: float, hyps: list[Hypothesis],
                      rng: np.random.Generator,
-                     evidence: tuple[np.ndarray, np.ndarray, PlaceEvidence] | None = None
-                     ) -> None:
+                     evidence: PlaceEvidence | None = None) -> None:
         """Mode-preserving resampling factors (`mode_floor`) into `p.factor`: the clusters
         are those of the weighted sample plus those of a uniform sample of the particles (a
         mode that holds many particles but little weight), merged when closer than two
@@ -85,9 +84,9 @@ class GlobalSearch:
         model is a deliberately blurred search heuristic, not evidence to accumulate: the
         heaviest clusters keep their floor whatever their weight, and the copies start with
         equal weights (tempering), so the accurate model decides between the modes from the
-        end of the coarse phase on. With `evidence` (each particle's place and weight, and
-        the evidence), every place the scans have not ruled out also keeps a floor of
-        particles (`evidence.place_floor`), however many look-alike places there are."""
+        end of the coarse phase on. With `evidence` (added this update), every place the scans
+        have not ruled out also keeps a floor of particles (`PlaceEvidence.floor`, on the
+        device), however many look-alike places there are."""
         e, r = self.cfg.estimate, self.cfg.resample
         self.floored, self.rivals, self.live_places = False, 0, 0
         if not self.active or r.mode_share <= 0:
@@ -108,16 +107,13 @@ class GlobalSearch:
         table, self.rivals = mode_floor_table(
             cluster_w, r.mode_share, COARSE_MIN_WEIGHT if self.exploring else r.mode_min_weight,
             e.max_hypotheses)
-        place_factors = None
+        place_floored = False
         if evidence is not None and r.place_min_particles > 0:
-            places, weights, ev = evidence
-            margin = max(r.place_margin_nats, ev.noise_margin(int(places.max()) + 1))
-            factors, self.live_places = place_floor(places, weights, ev.log_l, margin,
-                                                    r.place_min_particles)
-            if self.live_places >= 2:
-                place_factors = factors
-        if self.rivals or place_factors is not None:
-            self.labels.apply(p, table, place_factors)
+            margin = max(r.place_margin_nats, evidence.noise_margin(evidence.places))
+            self.live_places = evidence.floor(p, margin, r.place_min_particles)
+            place_floored = self.live_places >= 2
+        if self.rivals or place_floored:
+            self.labels.apply(p, table, place_floored)
             self.floored = True
 
     def converged(self, dominant: bool) -> bool:

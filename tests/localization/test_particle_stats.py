@@ -145,6 +145,9 @@ def test_cluster_labels_and_mode_floor_match_host(ti_runtime):
     host = mode_floor(expected, w, 0.3, 1e-4, 3)
     assert rivals == host.rivals >= 1
     place = np.where(np.arange(n) % 7 == 0, 3.0, 1.0)
-    labels.apply(p, table, place)
+    p.factor.from_numpy(np.pad(place, (0, p.capacity - n)).astype(np.float32))
+    labels.apply(p, table, keep_place_factors=True)
     np.testing.assert_allclose(p.factor.to_numpy()[:n], np.maximum(host.factors, place),
                                rtol=1e-4)
+    labels.apply(p, table, keep_place_factors=False)
+    np.testing.assert_allclose(p.factor.to_numpy()[:n], host.factors, rtol=1e-4)
