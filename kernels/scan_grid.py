@@ -349,6 +349,22 @@ def gather_bricks(p: vec3, key: ivec3, k: ti.i32, pts: ti.template(), grid: ti.t
 
 
 @ti.func
+def neighbour_scatter(pts: ti.template(), nbr: ti.template(), found: ti.i32,
+                      p: vec3) -> ti.math.mat3:
+    """The scatter (covariance) of the `found` points pts[nbr[j]], taken relative to p (the
+    point itself, for f32 precision far from the origin)."""
+    mean = vec3(0.0)
+    for j in range(found):
+        mean += pts[nbr[j]] - p
+    mean /= ti.cast(found, ti.f32)
+    S = ti.math.mat3(0.0)
+    for j in range(found):
+        d = pts[nbr[j]] - p - mean
+        S += d.outer_product(d)
+    return S / ti.cast(found, ti.f32)
+
+
+@ti.func
 def plane_rows(num_voxels: ti.i32, k: ti.i32, grid: ti.template(), pts: ti.template(),
                out_plane: ti.template()):
     """Covariance of each point's k nearest points (itself included), plane-regularized:
@@ -371,15 +387,7 @@ def plane_rows(num_voxels: ti.i32, k: ti.i32, grid: ti.template(), pts: ti.templ
             found, nbr = gather_bricks(p, key, k, pts, grid)
         row = ti.Vector([1.0, 0.0, 0.0, 1.0, 0.0, 0.0], ti.f32)
         if found >= min_neighbors:
-            mean = vec3(0.0)
-            for j in range(found):
-                mean += pts[nbr[j]] - p
-            mean /= ti.cast(found, ti.f32)
-            S = ti.math.mat3(0.0)
-            for j in range(found):
-                d = pts[nbr[j]] - p - mean
-                S += d.outer_product(d)
-            S /= ti.cast(found, ti.f32)
+            S = neighbour_scatter(pts, nbr, found, p)
             n = smallest_eigenvector(S)
             if not is_scan_line(S, n):
                 row = ti.Vector([n[0], n[1], n[2], 1.0, normal_variance - 1.0, 0.0], ti.f32)

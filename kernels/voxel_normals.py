@@ -19,7 +19,7 @@ ray" (projective distance), as for the range-image normals (scan_normals.py).
 import taichi as ti
 
 from mcl3d.kernels.covariance import smallest_eigenvector
-from mcl3d.kernels.scan_grid import MAX_K, keep_nearest
+from mcl3d.kernels.scan_grid import MAX_K, keep_nearest, neighbour_scatter
 from mcl3d.kernels.scan_normals import MIN_NEIGHBORS, line_only
 
 vec3 = ti.math.vec3
@@ -113,15 +113,7 @@ def plane_normal(pts: ti.template(), nbr: ti.template(), found: ti.i32, p: vec3)
     fewer than MIN_NEIGHBORS or along a line."""
     normal = vec3(0.0)
     if found >= MIN_NEIGHBORS:
-        mean = vec3(0.0)
-        for j in range(found):
-            mean += pts[nbr[j]] - p
-        mean /= ti.cast(found, ti.f32)
-        S = ti.math.mat3(0.0)
-        for j in range(found):
-            e = pts[nbr[j]] - p - mean
-            S += e.outer_product(e)
-        S /= ti.cast(found, ti.f32)
+        S = neighbour_scatter(pts, nbr, found, p)
         nrm = smallest_eigenvector(S)
         if not line_only(S, nrm):
             normal = -nrm if nrm.dot(p) > 0.0 else nrm

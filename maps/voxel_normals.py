@@ -71,7 +71,8 @@ def fits(points: np.ndarray, k: int) -> bool:
     if not 1 <= k <= MAX_K or len(points) == 0:
         return False
     extent = points.max(axis=0) - points.min(axis=0)
-    return float(extent.max()) < FINE_CELL_M * ((1 << voxel_normals.MORTON_BITS) - 2 * 64)
+    margin = 2 << (voxel_normals.LEVEL_SHIFT * (voxel_normals.LEVELS - 1))  # coarsest cells
+    return float(extent.max()) < FINE_CELL_M * ((1 << voxel_normals.MORTON_BITS) - margin)
 
 
 def voxel_normals_of(points: np.ndarray, k: int) -> np.ndarray:
