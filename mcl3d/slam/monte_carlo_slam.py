@@ -310,7 +310,7 @@ class MonteCarloSlam:
         if scored and corr.spread_after_step and cov is not None:
             p.spread(cov, len(src_pts), cfg.likelihood.points_weight, corr.min_inliers,
                      corr.refine_without_loop, corrected > 0,
-                     np.random.default_rng([cfg.seed, len(self.frames), 1]))
+                     len(self.frames))
         watch.lap("refine")
         return looping, corrected, scored, loops
 

@@ -18,8 +18,9 @@ import numpy as np
 import taichi as ti
 
 from mcl3d.core.errors import ConfigError
-from mcl3d.core.geometry import quat_to_rot, rot_to_quat, se3, se3_exp
+from mcl3d.core.geometry import quat_to_rot, rot_to_quat, se3
 from mcl3d.kernels import slam as slam_kernels
+from mcl3d.kernels import slam_posterior
 from mcl3d.kernels.slam import NEIGHBOURS
 from mcl3d.slam.slam_config import CorrectionConfig, LikelihoodConfig
 
@@ -196,46 +197,22 @@ class SlamParticles:
                                        self.q_cur, self.t_cur))
 
     def spread(self, covariance: np.ndarray, num_src: int, points_weight: float,
-               min_inliers: int, refined: bool, corrected: bool,
-               rng: np.random.Generator) -> int:
+               min_inliers: int, refined: bool, corrected: bool, step: int) -> int:
         """Give the particles a Gauss-Newton step moved (loop correction or refinement) back
         the spread the step took: each draws δ ~ N(0, P) with P = (Σ⁻¹ + k H)⁻¹ the
         Gaussian posterior of its step, Σ the prediction's `covariance` as prior and k H the
         curvature of the tempered likelihood (k = points_weight / (rows · num_src), H the
-        GICP Hessian `weigh` just linearized against its neighbours), and moves by exp(δ).
+        GICP Hessian `weigh` just linearized against its neighbours), and moves by exp(δ)
+        (kernels/slam_posterior.py, random numbers from the run's seed and `step`).
         A step lands every particle on the likelihood's mode; without this the cloud
         collapses there and stops covering the truth. `refined` / `corrected`: whether
         `refine` / `correct` ran on this scan. Returns how many particles drew."""
         best = self.gicp.poses.best
-        groups = self.n * NEIGHBOURS
-        H = best.H.to_numpy()[:groups].reshape(self.n, NEIGHBOURS, 6, 6).astype(np.float64)
-        matched = np.maximum(best.n.to_numpy()[:groups].reshape(self.n, NEIGHBOURS), 0)
-        rows = (self.nb.to_numpy() >= 0) & (matched > 0)
-        enough = rows.any(axis=1) & (matched.sum(axis=1) >= min_inliers)
-        loop = (self.nb_loop.to_numpy() == 1).any(axis=1)
-        moves = np.zeros(self.n, bool)
-        if refined:
-            moves |= enough & ~loop
-        if corrected:
-            moves |= self.corrected.to_numpy() == 1
-        idx = np.flatnonzero(moves)
-        if len(idx) == 0:
-            return 0
-        k = points_weight / (np.maximum(rows[idx].sum(axis=1), 1) * num_src)
-        info = (np.linalg.inv(covariance + COVARIANCE_JITTER * np.eye(6))
-                + k[:, None, None] * np.einsum("ij,ijab->iab", rows[idx], H[idx]))
-        post = np.linalg.inv(info)
-        chol = np.linalg.cholesky(0.5 * (post + np.swapaxes(post, 1, 2))
-                                  + COVARIANCE_JITTER * np.eye(6))
-        delta = (chol @ rng.standard_normal((len(idx), 6, 1)))[..., 0]
-        poses = self.current_poses()[idx] @ se3_exp(delta)
-        q = self.q_cur.to_numpy()
-        t = self.t_cur.to_numpy()
-        q[idx] = rot_to_quat(poses[:, :3, :3])
-        t[idx] = poses[:, :3, 3]
-        self.q_cur.from_numpy(q.astype(np.float32))
-        self.t_cur.from_numpy(t.astype(np.float32))
-        return len(idx)
+        info = np.linalg.inv(covariance + COVARIANCE_JITTER * np.eye(6)).astype(np.float32)
+        return int(slam_posterior.draw_posterior(
+            self.n, self.nb, self.nb_loop, best.H, best.n, self.corrected, info,
+            points_weight / num_src, min_inliers, int(refined), int(corrected), self.seed,
+            step, self.q_cur, self.t_cur))
 
     def respawn(self, dead: np.ndarray, source: np.ndarray, log_w: np.ndarray) -> None:
         """Replace particles `dead` by copies of `source` and upload the new log weights."""

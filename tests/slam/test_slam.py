@@ -317,8 +317,7 @@ def test_spread_draws_from_the_steps_gaussian_posterior(ti_runtime):
     loop[n - 2, 0] = 1  # a looping particle: refinement did not move it
     p.nb_loop.from_numpy(loop)
     cov = np.diag(np.r_[np.full(3, 1e-3**2), np.full(3, 0.01**2)])
-    moved = p.spread(cov, num_src, weight, 30, refined=True, corrected=False,
-                     rng=np.random.default_rng(1))
+    moved = p.spread(cov, num_src, weight, 30, refined=True, corrected=False, step=1)
     assert moved == n - 2
     xi = geometry.se3_log(p.current_poses())
     np.testing.assert_allclose(xi[n - 2:], 0.0, atol=1e-7)
