@@ -36,7 +36,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from results_io import Run
+from results_io import RESULTS, Run
 
 SKIP_SCANS = 2  # the first updates compile kernels: "warm" excludes them
 LOC_STAGES = ("motion", "likelihood", "weights", "estimate", "resample", "recovery")
@@ -374,6 +374,9 @@ def parse_args() -> argparse.Namespace:
                                                       "slam"])
     ap.add_argument("--keep", type=Path, help="keep the logs and outputs in this folder")
     ap.add_argument("--out", type=Path, help="JSON (default bench/results/bench_commands.json)")
+    ap.add_argument("--update", action="store_true",
+                    help="keep the rows of commands and worlds not rerun from the existing "
+                         "JSON (their run is named in a note) and replace the rest")
     args = ap.parse_args()
     args.worlds = args.worlds or (["office"] if args.quick else ["office", "warehouse"])
     args.duration = args.duration or (5.0 if args.quick else 60.0)
@@ -446,11 +449,43 @@ def main() -> None:
              f"KISS-ICP on the same decoded scans, median over frames of {args.repeats} "
              "pass(es); the command's own per-scan time is in its stage rows."]
     notes += largest_stages(stages)
+    if args.update:
+        rows, stages, raw, notes = kept_from_earlier(args.out or RESULTS, raw, rows, stages,
+                                                     notes)
     path = run.write({"tables": {"Whole commands against the targets": rows,
                                  "Where the time goes, per scan": stages},
                       "notes": notes, "raw": raw, "backend": info.backend,
                       "device": info.device}, args.out)
     print(f"wrote {path}")
+
+
+def kept_from_earlier(path: Path, raw: dict, rows: list[dict], stages: list[dict],
+                      notes: list[str]) -> tuple[list[dict], list[dict], dict, list[str]]:
+    """--update: the earlier JSON's rows, stages and raw figures of the (world, command)
+    pairs not rerun, then this run's; a note names both runs."""
+    path = path / "bench_commands.json" if path.is_dir() else path
+    if not path.exists():
+        return rows, stages, raw, notes
+    earlier = json.loads(path.read_text())
+    figures = earlier["figures"]
+    rerun = {_unit(*key.split("/", 1)) for key in raw}
+    table_rows, table_stages = figures["tables"].values()
+    kept_rows = [r for r in table_rows if _unit(r["world"], r["command"]) not in rerun]
+    kept_stages = [r for r in table_stages
+                   if _unit(r["command"].split("(")[1].split(",")[0].rstrip(")"),
+                            r["command"]) not in rerun]
+    kept_raw = {k: v for k, v in figures["raw"].items() if _unit(*k.split("/", 1)) not in rerun}
+    note = (f"Rows of {', '.join(sorted(raw))} from this run ({time.strftime('%Y-%m-%d %H:%M')}"
+            f" UTC); the others from the run of {earlier['date']} (commit {earlier['commit']},"
+            f" load {earlier['load_average']['before']} at its start).")
+    return kept_rows + rows, kept_stages + stages, {**kept_raw, **raw}, [note, *notes]
+
+
+def _unit(world: str, command: str) -> tuple[str, str]:
+    """(world, command name) of a row, stage row or raw key: 'localize tracking',
+    'localize-gt' and 'localize global (office)' are all localize."""
+    name = command.split()[0]
+    return world, name if name.startswith("build-map") else name.split("-")[0]
 
 
 def with_usage(row: dict, whole: dict) -> dict:
