@@ -448,10 +448,10 @@ def main() -> None:
              "Odometry: the step timed in this process, interleaved frame by frame with "
              f"KISS-ICP on the same decoded scans, median over frames of {args.repeats} "
              "pass(es); the command's own per-scan time is in its stage rows."]
-    notes += largest_stages(stages)
     if args.update:
         rows, stages, raw, notes = kept_from_earlier(args.out or RESULTS, raw, rows, stages,
                                                      notes)
+    notes += largest_stages(stages)
     path = run.write({"tables": {"Whole commands against the targets": rows,
                                  "Where the time goes, per scan": stages},
                       "notes": notes, "raw": raw, "backend": info.backend,
