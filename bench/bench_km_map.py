@@ -14,13 +14,21 @@ noise. Global initialization's candidate cells are generated in the loaded map, 
 known blocks (the dense grid over the bounds they came from before took cells of 8 voxels
 here, 1.6 m at 20 cm, and refused these bounds at 5 cm voxels).
 
+A global start follows (default settings: the coarse search phase on its sparse distance
+field, then the accurate model) over --global-scans scans 1 m apart from 30 % along the route,
+with --global-particles particles (default: two per candidate cell of the initialization,
+at most a million).
+
 Reported: peak RSS of the process (the build dominates), the coarse index's memory (top
 grid + tiles), the blocks' and the file's, against the dense coarse grid the version-1
 layout needed over the same bounds (and at 5 cm voxels), build and tracking times, and the
-tracking error. There is no other implementation to compare with in the same run: the
-baseline is the former dense layout's memory, computed for the same bounds.
+tracking error; for the global start, the coarse search field's cell and device bytes
+against the former dense field over the bounds, its initialization time, whether and when it
+converged, and its update times. There is no other implementation to compare with in the
+same run: the baseline is the former dense layouts' memory, computed for the same bounds.
 
     python bench/bench_km_map.py [--quick] [--backend cpu] [--voxel-m 0.1] [--side-m 1000]
+                                 [--global-particles N] [--global-scans 40]
 """
 
 from __future__ import annotations
@@ -41,6 +49,8 @@ MAX_RANGE_M = 60.0
 TRACK_STEP_M = 1.0
 BLOCKS_PER_M_AT_10CM = 200  # blocks per metre of street (measured: ~165), sizes the pool
 HEIGHT_M = 50.0
+GLOBAL_TOL_M = 0.5  # a global start converged: the filter says so, this close to the truth
+MAX_GLOBAL_PARTICLES = 1_000_000
 
 
 def rss_mib() -> float:
@@ -170,6 +180,70 @@ def track(tsdf, scanner: Scanner, poses: np.ndarray, particles: int, seed: int) 
             "step_ms_median": statistics.median(ms[1:] if len(ms) > 1 else ms)}
 
 
+def global_start(tsdf, scanner: Scanner, poses: np.ndarray, particles: int, seed: int) -> dict:
+    """A global start with the default settings (the coarse search phase on its sparse field,
+    then the accurate model), roll and pitch from gravity, odometry = true motion + noise as
+    in `track`: the filter's state and position error after each scan, update times (the
+    coarse phase's and the rest), the coarse field's cell and device bytes, and the time
+    and peak host allocation (tracemalloc) of the initialization (candidates + field)."""
+    import tracemalloc
+
+    from mcl3d.core.geometry import se3_inverse
+    from mcl3d.localization.localization_config import LocalizerConfig
+    from mcl3d.localization.localizer import Localizer
+
+    cfg = LocalizerConfig.model_validate({"particles": particles, "seed": seed})
+    loc = Localizer(tsdf, cfg, imu_roll_pitch=(0.0, 0.0))
+    tracemalloc.start()
+    t0, c0 = time.perf_counter(), time.process_time()
+    loc.init_global()
+    init = {"wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0,
+            "peak_alloc_mib": tracemalloc.get_traced_memory()[1] / 2**20}
+    tracemalloc.stop()
+    rng = np.random.default_rng(seed + 1)
+    errors, states, wall_ms, cpu_ms = [], [], [], []
+    for k, T in enumerate(poses):
+        dT = None if k == 0 else se3_inverse(poses[k - 1]) @ T
+        if dT is not None:
+            dT[:3, 3] += rng.normal(0, [0.05, 0.05, 0.01])
+        points = scanner.scan(T)
+        t0, c0 = time.perf_counter(), time.process_time()
+        r = loc.step(points, dT, 0.1 * k)
+        wall_ms.append(1e3 * (time.perf_counter() - t0))
+        cpu_ms.append(1e3 * (time.process_time() - c0))
+        errors.append(float(np.linalg.norm(r.T_map_lidar[:3, 3] - T[:3, 3])))
+        states.append(r.state.value)
+    coarse = cfg.sensor.coarse_scans
+    said = [k for k, st in enumerate(states) if st == "converged"]
+    off = np.flatnonzero(np.asarray(errors) >= GLOBAL_TOL_M)
+    within = int(off[-1]) + 1 if len(off) else 0
+    return {"particles": particles, "scans": len(poses), "init": init,
+            "field": loc.weigher.coarse_summary,
+            "converged": states[-1] == "converged" and errors[-1] < GLOBAL_TOL_M,
+            "converged_at_scan": said[0] if said else None, "final_state": states[-1],
+            "within_tol_from_scan": within if within < len(errors) else None,
+            "final_error_m": errors[-1], "errors_m": errors, "states": states,
+            "coarse_update_ms": {"wall": statistics.median(wall_ms[1:coarse]),
+                                 "cpu": statistics.median(cpu_ms[1:coarse])},
+            "later_update_ms": {"wall": statistics.median(wall_ms[coarse:]),
+                                "cpu": statistics.median(cpu_ms[coarse:])}}
+
+
+def dense_field_bytes(geometry, voxel_m: float) -> dict:
+    """What the former dense coarse field over the bounds took with the default settings:
+    its cell (coarsened until the bounds held 16 M cells, at most one cell per block) and 4
+    bytes a cell."""
+    from mcl3d.localization.sensor_model import SensorModelConfig
+
+    cfg = SensorModelConfig()
+    f = 1
+    while f < 8 and voxel_m * f * 2 <= cfg.coarse_cell_m + 1e-9:
+        f *= 2
+    while f < 8 and geometry.n_cells * (8 // f) ** 3 > 16_000_000:
+        f *= 2
+    return {"cell_m": voxel_m * f, "bytes": 4 * geometry.n_cells * (8 // f) ** 3}
+
+
 def global_candidates(tsdf) -> dict:
     """Global initialization's candidate cells (the default band and covered rule): wall and
     cpu time, and the peak of memory allocated meanwhile (tracemalloc sees NumPy's arrays)."""
@@ -201,6 +275,38 @@ def dense_grid_rule(geometry, cell_m: float) -> dict:
             "refused": geometry.n_cells * (8 // f) ** 3 > 160_000_000}
 
 
+def global_rows(started: dict, dense: dict) -> list[dict]:
+    """Table rows of the global start and its coarse search field."""
+    field, mib = started["field"], 1 / 2**20
+    at, within = started["converged_at_scan"], started["within_tol_from_scan"]
+    return [
+        {"quantity": "coarse search field: cell m, blocks with a slot, bricks",
+         "value": f"{field['cell_m']:.2f}, {field['blocks']}, {field['bricks']}"},
+        {"quantity": "coarse search field, MiB (slot index + bricks)",
+         "value": f"{(field['index_bytes'] + field['brick_bytes']) * mib:.1f} "
+                  f"({field['index_bytes'] * mib:.1f} + {field['brick_bytes'] * mib:.1f})"},
+        {"quantity": "former dense field over the bounds (cell m), MiB: same / 5 cm voxels",
+         "value": f"{dense['same_bounds']['bytes'] * mib:.0f} "
+                  f"({dense['same_bounds']['cell_m']:.1f}) / "
+                  f"{dense['at_5cm']['bytes'] * mib:.0f} ({dense['at_5cm']['cell_m']:.1f})"},
+        {"quantity": "global start: init s wall / cpu, peak alloc MiB",
+         "value": f"{started['init']['wall_s']:.1f} / {started['init']['cpu_s']:.1f}, "
+                  f"{started['init']['peak_alloc_mib']:.0f}"},
+        {"quantity": f"global start, {started['particles']} particles: converged (scan), "
+                     f"final state, error m",
+         "value": f"{'yes' if started['converged'] else 'no'} "
+                  f"({at if at is not None else '-'} of {started['scans']}), "
+                  f"{started['final_state']}, {started['final_error_m']:.2f}"},
+        {"quantity": f"global start: estimate within {GLOBAL_TOL_M} m from scan",
+         "value": "-" if within is None else f"{within} of {started['scans']}"},
+        {"quantity": "global start ms per update, wall / cpu: coarse phase, after",
+         "value": f"{started['coarse_update_ms']['wall']:.0f} / "
+                  f"{started['coarse_update_ms']['cpu']:.0f}, "
+                  f"{started['later_update_ms']['wall']:.0f} / "
+                  f"{started['later_update_ms']['cpu']:.0f}"},
+    ]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="a 150 m L, 5 tracked scans")
@@ -210,12 +316,18 @@ def main() -> None:
     ap.add_argument("--step-m", type=float, default=4.0, help="scan spacing along the route")
     ap.add_argument("--track-scans", type=int, help="tracked scans (default 15)")
     ap.add_argument("--particles", type=int, default=2000)
+    ap.add_argument("--global-particles", type=int,
+                    help="particles of the global start (default: two per candidate cell, at "
+                         "most 1000000)")
+    ap.add_argument("--global-scans", type=int, help="scans of the global start (default 40, "
+                                                     "quick 30)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--work-dir", type=Path, help="where the map file goes (default: a temp dir)")
     args = ap.parse_args()
     side = args.side_m or (150.0 if args.quick else 1000.0)
     step = args.step_m
     n_track = args.track_scans or (5 if args.quick else 15)
+    global_scans = args.global_scans or (30 if args.quick else 40)
     run = Run("bench_km_map", baselines=())
 
     from mcl3d.core import runtime
@@ -254,6 +366,11 @@ def main() -> None:
         tracked = route(side, TRACK_STEP_M)
         far = int(len(tracked) * 0.85)
         tracking = track(loaded, scanner, tracked[far:far + n_track], args.particles, args.seed)
+        start = int(len(tracked) * 0.3)
+        n_global = args.global_particles or min(MAX_GLOBAL_PARTICLES,
+                                                2 * candidates["candidates"])
+        started = global_start(loaded, scanner, tracked[start:start + global_scans], n_global,
+                               args.seed)
     st = info.stats
     dense_5cm = MapGeometry.around(lo, hi, 0.05, 0.2).n_cells * 8
     mib = 1 / 2**20
@@ -266,7 +383,9 @@ def main() -> None:
                     "peak": peak_rss_mib()},
         "memory": st.as_dict()["memory"], "blocks": st.as_dict()["blocks"],
         "dense_index_bytes_at_5cm": dense_5cm, "tracking": tracking,
-        "global_candidates": candidates,
+        "global_candidates": candidates, "global_start": started,
+        "dense_field": {"same_bounds": dense_field_bytes(geometry, args.voxel_m),
+                        "at_5cm": dense_field_bytes(MapGeometry.around(lo, hi, 0.05, 0.2), 0.05)},
     }
     caption = (f"Kilometre-scale map: {side:.0f} m x {side:.0f} m x {HEIGHT_M:.0f} m bounds, "
                f"{args.voxel_m * 100:.0f} cm voxels, {len(poses)} scans")
@@ -294,12 +413,20 @@ def main() -> None:
         {"quantity": "former dense candidate grid over the bounds: cell m",
          "value": "refused" if candidates["dense_grid"]["refused"]
                   else f"{candidates['dense_grid']['cell_m']:.2f}"},
+        *global_rows(started, figures["dense_field"]),
     ]}
     figures["notes"] = [
         f"synthetic L-shaped street, seed {args.seed}, VLP-16-like scans every {step} m; "
         f"{tracking['scans']} tracked scans {TRACK_STEP_M:.0f} m apart ({args.particles} "
         f"particles, 256 points) {0.85 * 2 * side:.0f} m along the route; backend "
-        f"{args.backend}; the dense grid of format 1 is computed for the same bounds"]
+        f"{args.backend}; the dense grid of format 1 is computed for the same bounds",
+        f"global start: default settings (coarse search phase on its sparse field), "
+        f"{n_global} particles, roll/pitch from gravity, {global_scans} scans "
+        f"{TRACK_STEP_M:.0f} m apart from {0.3 * 2 * side:.0f} m along the route, odometry "
+        f"= true motion + noise; converged = the filter says so within {GLOBAL_TOL_M} m at "
+        f"the last scan (it says `ambiguous` while a rival place holds >= 1 % of the "
+        f"weight); update times: medians over the coarse phase's scans after the "
+        f"first and over the later scans"]
     for row in next(iter(figures["tables"].values())):
         print(f"{row['quantity']:<60} {row['value']}")
     print("wrote", run.write(figures))

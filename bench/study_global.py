@@ -164,14 +164,14 @@ class MapCache:
     wrapping the two functions the Localizer calls; `current` names the map being run."""
 
     def __init__(self):
+        import mcl3d.localization.coarse_field
         import mcl3d.localization.localizer
-        import mcl3d.localization.sensor_model
 
         self.current: Path | None = None
         self._free = mcl3d.localization.localizer.free_cells
-        self._coarse = mcl3d.localization.sensor_model.coarse_field
+        self._coarse = mcl3d.localization.coarse_field.coarse_field
         mcl3d.localization.localizer.free_cells = self.free_cells
-        mcl3d.localization.sensor_model.coarse_field = self.coarse_field
+        mcl3d.localization.coarse_field.coarse_field = self.coarse_field
 
     def _path(self, kind: str, cfg) -> Path:
         import hashlib
@@ -191,16 +191,18 @@ class MapCache:
         return cells
 
     def coarse_field(self, tsdf, cfg):
-        from mcl3d.localization.sensor_model import CoarseField
+        import dataclasses
+
+        from mcl3d.localization.coarse_field import CoarseField
 
         path = self._path("coarse", cfg)
         if path.exists():
             z = np.load(path)
-            return CoarseField(z["codes"], z["origin_m"], float(z["cell_m"]),
-                               float(z["max_dist_m"]))
+            return CoarseField(**{f.name: z[f.name].item() if z[f.name].ndim == 0 else z[f.name]
+                                  for f in dataclasses.fields(CoarseField)})
         f = self._coarse(tsdf, cfg)
-        np.savez_compressed(path, codes=f.codes, origin_m=f.origin_m, cell_m=f.cell_m,
-                            max_dist_m=f.max_dist_m)
+        np.savez_compressed(path, **{x.name: getattr(f, x.name)
+                                     for x in dataclasses.fields(CoarseField)})
         return f
 
 

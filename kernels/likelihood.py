@@ -196,6 +196,69 @@ def scan_log_likelihood(m: ti.template(), codes: ti.template(), slot: ti.templat
         ll_mean[i] = total * inv_m
 
 
+@ti.func
+def coarse_code(f: ti.template(), g: ivec3) -> ti.i32:
+    """The code of field cell g of the coarse search field `f` (mcl3d.localization.weighing.
+    DeviceCoarseField), the unknown code outside the bounds: one read of a dense grid of
+    codes (layout `codes`), or its block's slot (a dense grid of slots, or a top grid of
+    tiles of 8^3 slots) then the cell in that slot's brick (slot 0, the unknown brick,
+    outside the bounds). Reads at clamped indices whatever the cell: no branch."""
+    code = 0
+    if ti.static(f.layout == "codes"):
+        gu = ti.cast(g, ti.u32)
+        inside = (gu[0] < f.codes.shape[0]) & (gu[1] < f.codes.shape[1]) & (
+            gu[2] < f.codes.shape[2])
+        gc = ti.select(inside, g, 0)
+        code = ti.select(inside, f.codes[gc[0], gc[1], gc[2]], COARSE_UNKNOWN)
+    else:
+        c = g >> f.block_shift
+        cu = ti.cast(c, ti.u32)
+        dims = ti.math.uvec3(f.coarse_dims[0], f.coarse_dims[1], f.coarse_dims[2])
+        inside = (cu[0] < dims[0]) & (cu[1] < dims[1]) & (cu[2] < dims[2])
+        cc = ti.select(inside, c, 0)
+        s = 0
+        if ti.static(f.layout == "slots"):
+            s = f.slots[cc[0], cc[1], cc[2]]
+        else:
+            t = f.top[cc[0] >> TILE_SHIFT, cc[1] >> TILE_SHIFT, cc[2] >> TILE_SHIFT]
+            s = f.tiles[t, cc[0] & (TILE - 1), cc[1] & (TILE - 1), cc[2] & (TILE - 1)]
+        s = ti.select(inside, s, 0)
+        mask = (1 << f.block_shift) - 1
+        code = f.bricks[s, g[0] & mask, g[1] & mask, g[2] & mask]
+    return code
+
+
+@ti.kernel
+def write_coarse_tiles(f: ti.template(), tiles: ti.types.ndarray(dtype=ivec3, ndim=1),
+                       n: ti.i32):
+    """Top grid of a tiled field: tile i of `tiles` (coordinates of 8^3 blocks) gets id i + 1
+    (id 0, never written, holds only unknown slots)."""
+    for i in range(n):
+        t = tiles[i]
+        f.top[t[0], t[1], t[2]] = i + 1
+
+
+@ti.kernel
+def write_coarse_slots(f: ti.template(), coords: ti.types.ndarray(dtype=ivec3, ndim=1),
+                       slots: ti.types.ndarray(dtype=ti.i32, ndim=1), n: ti.i32):
+    """The slots of the listed blocks (their tiles already in the top grid when tiled)."""
+    for i in range(n):
+        c = coords[i]
+        if ti.static(f.layout == "slots"):
+            f.slots[c[0], c[1], c[2]] = slots[i]
+        else:
+            t = f.top[c[0] >> TILE_SHIFT, c[1] >> TILE_SHIFT, c[2] >> TILE_SHIFT]
+            f.tiles[t, c[0] & (TILE - 1), c[1] & (TILE - 1), c[2] & (TILE - 1)] = slots[i]
+
+
+@ti.kernel
+def write_coarse_bricks(f: ti.template(), start: ti.i32,
+                        codes: ti.types.ndarray(dtype=ti.i32, ndim=4), n: ti.i32):
+    """Bricks [start, start + n) of the field from `codes` (n, k, k, k)."""
+    for i, a, b, c in ti.ndrange(n, codes.shape[1], codes.shape[2], codes.shape[3]):
+        f.bricks[start + i, a, b, c] = codes[i, a, b, c]
+
+
 @ti.kernel
 def coarse_scan_log_likelihood(field: ti.template(), origin: vec3, inv_cell: ti.f32,
                                order: ti.template(), pos: ti.template(), quat: ti.template(),
@@ -203,9 +266,9 @@ def coarse_scan_log_likelihood(field: ti.template(), origin: vec3, inv_cell: ti.
                                table: ti.template(), match_codes: ti.i32, tempering: ti.f32,
                                log_w: ti.template(), match: ti.template(),
                                ll_mean: ti.template()):
-    """The coarse search model (mcl3d.localization.sensor_model.coarse_field): one lookup per
-    point in a dense grid of distance codes, the same outputs as scan_log_likelihood."""
-    dims = ti.static(field.shape)
+    """The coarse search model (mcl3d.localization.coarse_field): one lookup per point in
+    the sparse field of distance codes (`coarse_code`), the same outputs as
+    scan_log_likelihood."""
     ti.loop_config(block_dim=64)
     for k in range(n):
         i = order[k]
@@ -215,11 +278,7 @@ def coarse_scan_log_likelihood(field: ti.template(), origin: vec3, inv_cell: ti.
         total = 0.0
         hits = 0
         for j in range(n_pts):
-            g = ti.cast(ti.floor(Rs @ pts[j] + t), ti.i32)
-            inside = (g[0] >= 0) & (g[0] < dims[0]) & (g[1] >= 0) & (g[1] < dims[1]) & (
-                g[2] >= 0) & (g[2] < dims[2])
-            gc = ti.select(inside, g, 0)
-            code = ti.select(inside, field[gc[0], gc[1], gc[2]], COARSE_UNKNOWN)
+            code = coarse_code(field, ti.cast(ti.floor(Rs @ pts[j] + t), ti.i32))
             total += table[code]
             hits += ti.cast(code < match_codes, ti.i32)
         inv_m = 1.0 / ti.max(n_pts, 1)

@@ -13,7 +13,6 @@ from typing import Literal
 
 import numpy as np
 from pydantic import Field, model_validator
-from scipy.ndimage import distance_transform_edt
 
 from mcl3d.core.config import Section
 from mcl3d.core.geometry import quat_to_rot
@@ -92,8 +91,6 @@ class SensorModelConfig(Section):
 
 
 TABLE_SIZE = 1024  # mcl3d.kernels.likelihood.TABLE_SIZE
-COARSE_BINS = 256  # mcl3d.kernels.likelihood.COARSE_BINS: then far-free, then unknown
-MAX_COARSE_CELLS = 16_000_000  # the coarse field stays under 64 MB
 MORTON_BITS = 21  # per axis: 2^21 cells of spatial_order's cell size
 
 
@@ -260,90 +257,3 @@ def paper_log_likelihood_numpy(host: NumpyTsdf, positions: np.ndarray, quats_xyz
     total = (score + cfg.z_rand / cfg.max_range_m).sum(axis=1)
     hit = score >= paper_value(cfg.match_dist_m, cfg, trunc, sigma_m)
     return np.log(total), hit.mean(axis=1), np.log(total / max(len(points), 1))
-
-
-# --------------------------------------------------------------------- coarse search model
-@dataclass
-class CoarseField:
-    """Dense grid of codes for the coarse search model: the bin of the distance from the
-    cell to the nearest surface cell (COARSE_BINS bins over [0, max_dist)), COARSE_BINS for
-    observed cells farther than max_dist, COARSE_BINS + 1 for unknown cells farther."""
-
-    codes: np.ndarray  # (X, Y, Z) int32
-    origin_m: np.ndarray
-    cell_m: float
-    max_dist_m: float
-
-
-def coarse_field(tsdf, cfg: SensorModelConfig) -> CoarseField:
-    """The map's coarse distance field. A cell is a surface cell when one of its observed
-    voxels holds |d| below half a voxel diagonal (the surface crosses it), observed when any
-    voxel was observed (or its block is FREE); distances are Euclidean between cell centres
-    (an exact distance transform). Unknown cells near surfaces (just behind a wall) keep their
-    distance, so a pose slightly off still scores by how far off it is."""
-    f = 1
-    while f < BLOCK and tsdf.voxel_size_m * f * 2 <= cfg.coarse_cell_m + 1e-9:
-        f *= 2
-    while f < BLOCK and tsdf.geometry.n_cells * (BLOCK // f) ** 3 > MAX_COARSE_CELLS:
-        f *= 2
-    k = BLOCK // f
-    cell = tsdf.voxel_size_m * f
-    dims = np.asarray(tsdf.coarse_dims) * k
-    observed = np.zeros(dims, bool)
-    surface = np.zeros(dims, bool)
-    data = tsdf.blocks()
-    for c in data.free_coords:
-        observed[c[0] * k:(c[0] + 1) * k, c[1] * k:(c[1] + 1) * k, c[2] * k:(c[2] + 1) * k] = True
-    if len(data.coords):
-        shape = (len(data.coords), k, f, k, f, k, f)
-        trunc = np.float32(tsdf.truncation_m)
-        obs = (data.weight > 0) | (data.sdf < trunc * np.float32(0.999))
-        surf = obs & (np.abs(data.sdf) <= np.float32(0.5 * np.sqrt(3) * tsdf.voxel_size_m))
-        ii = np.arange(k)
-        g = [data.coords[:, a, None, None, None] * k + np.meshgrid(ii, ii, ii, indexing="ij")[a]
-             for a in range(3)]
-        observed[g[0], g[1], g[2]] = obs.reshape(shape).any(axis=(2, 4, 6))
-        surface[g[0], g[1], g[2]] = surf.reshape(shape).any(axis=(2, 4, 6))
-    if surface.any():
-        dist = distance_transform_edt(~surface, sampling=cell).astype(np.float32)
-    else:
-        dist = np.full(dims, np.inf, np.float32)
-    near = dist < cfg.coarse_max_dist_m
-    codes = np.where(near, np.minimum(dist * (COARSE_BINS / cfg.coarse_max_dist_m),
-                                      COARSE_BINS - 1), 0).astype(np.int32)
-    codes[~near & observed] = COARSE_BINS
-    codes[~near & ~observed] = COARSE_BINS + 1
-    return CoarseField(codes, np.asarray(tsdf.origin_m, np.float64), float(cell),
-                       cfg.coarse_max_dist_m)
-
-
-def coarse_table(cfg: SensorModelConfig, sigma_m: float) -> np.ndarray:
-    """Log-likelihood per coarse code: the hit term at the bin centres, then observed free
-    far from surfaces (log p_free), then unknown (log p_unknown)."""
-    d = (np.arange(COARSE_BINS) + 0.5) * (cfg.coarse_max_dist_m / COARSE_BINS)
-    hit = np.log(cfg.z_hit * np.exp(-0.5 * (d / sigma_m) ** 2) + cfg.z_rand)
-    return np.concatenate([hit, [cfg.log_free, cfg.log_unknown]]).astype(np.float32)
-
-
-def coarse_match_codes(cfg: SensorModelConfig) -> int:
-    """Codes below this count as a surface match (distance under match_dist_m)."""
-    return int(np.ceil(cfg.match_dist_m * COARSE_BINS / cfg.coarse_max_dist_m))
-
-
-def coarse_log_likelihood_numpy(field: CoarseField, positions: np.ndarray,
-                                quats_xyzw: np.ndarray, points: np.ndarray,
-                                table: np.ndarray, match_codes: int, tempering: float
-                                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """NumPy twin of mcl3d.kernels.likelihood.coarse_scan_log_likelihood: (tempered
-    increment, match ratio, mean per-point ll) per particle."""
-    R = quat_to_rot(quats_xyzw.astype(np.float64)).astype(np.float32)
-    p = np.einsum("nij,mj->nmi", R, points.astype(np.float32)) + positions[:, None, :]
-    g = np.floor((p - field.origin_m.astype(np.float32)) / np.float32(field.cell_m)
-                 ).astype(np.int64)
-    dims = np.asarray(field.codes.shape)
-    inside = np.all((g >= 0) & (g < dims), axis=-1)
-    gc = np.where(inside[..., None], g, 0)
-    code = np.where(inside, field.codes[gc[..., 0], gc[..., 1], gc[..., 2]], COARSE_BINS + 1)
-    ll = table[code].astype(np.float64)
-    m = max(len(points), 1)
-    return tempering * ll.sum(axis=1), (code < match_codes).mean(axis=1), ll.sum(axis=1) / m

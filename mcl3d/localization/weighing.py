@@ -17,19 +17,84 @@ from mcl3d.core import runtime
 from mcl3d.kernels import counting_sort as ks
 from mcl3d.kernels import likelihood as kl
 from mcl3d.kernels import paper_likelihood as kpl
-from mcl3d.localization import sensor_model
+from mcl3d.localization import coarse_field
 from mcl3d.localization.particle_set import ParticleSet
 from mcl3d.localization.sensor_model import (
     BLOCK,
     SensorModelConfig,
-    coarse_match_codes,
-    coarse_table,
     code_table,
     paper_value,
     spatial_order,
 )
+from mcl3d.maps.sparse_cells import tiles_of
 
 LOCALITY_RANGE_M = 5.0  # yaw cells of the visiting order: one map cell at this range
+UPLOAD_CELLS = 4 << 20  # slots or brick cells per upload launch (Vulkan: under 8M)
+
+
+def coarse_layout(host: coarse_field.CoarseField) -> str:
+    """How the device holds the field: the layout of fewest reads a lookup whose grid over
+    the bounds takes at most likelihood.DENSE_SLOT_BYTES (as the likelihood's slot table):
+    `codes`, one dense grid of codes (one read), else bricks with `slots`, a dense slot per
+    block (two reads), else `tiles`, a top grid over the map's tiles of 8^3 blocks and a
+    tile of slots where one holds any (three reads; memory grows with the surface only)."""
+    blocks = int(np.prod(host.coarse_dims))
+    if 4 * blocks * host.cells_per_block**3 <= kl.DENSE_SLOT_BYTES:
+        return "codes"
+    return "slots" if 4 * blocks <= kl.DENSE_SLOT_BYTES else "tiles"
+
+
+class DeviceCoarseField:
+    """The coarse search field (mcl3d.localization.coarse_field) on the device, as
+    kernels/likelihood.coarse_code reads it, in one of the layouts of `coarse_layout`.
+    Never-written slots, tiles and top entries read 0: the unknown brick."""
+
+    _data_oriented = True  # a ti.template() argument keyed by weak reference (as TsdfMap)
+
+    def __init__(self, host: coarse_field.CoarseField, layout: str):
+        k = host.cells_per_block
+        self.coarse_dims = tuple(int(d) for d in host.coarse_dims)
+        self.block_shift = k.bit_length() - 1
+        self.layout = layout
+        if layout == "codes":
+            codes = codes_over_bounds(host)
+            self.codes = ti.field(ti.i32, shape=codes.shape)
+            self.codes.from_numpy(codes)
+            self.nbytes = {"index": 0, "bricks": codes.nbytes}
+            return
+        self.bricks = ti.field(ti.i32, shape=(len(host.bricks), k, k, k))
+        coords = np.ascontiguousarray(host.block_coords, dtype=np.int32).reshape(-1, 3)
+        slots = np.ascontiguousarray(host.block_slots, dtype=np.int32)
+        if layout == "slots":
+            self.slots = ti.field(ti.i32, shape=self.coarse_dims)
+            index_bytes = 4 * int(np.prod(self.coarse_dims))
+        else:
+            tiles = tiles_of(coords)
+            self.top = ti.field(ti.i32, shape=tuple(-(-d // kl.TILE) for d in self.coarse_dims))
+            self.tiles = ti.field(ti.i32, shape=(len(tiles) + 1, kl.TILE, kl.TILE, kl.TILE))
+            index_bytes = 4 * (int(np.prod(self.top.shape)) + int(np.prod(self.tiles.shape)))
+            for s in range(0, len(tiles), UPLOAD_CELLS):
+                part = tiles[s:s + UPLOAD_CELLS]
+                kl.write_coarse_tiles(self, part, len(part))
+        for s in range(0, len(coords), UPLOAD_CELLS):
+            kl.write_coarse_slots(self, coords[s:s + UPLOAD_CELLS], slots[s:s + UPLOAD_CELLS],
+                                  len(coords[s:s + UPLOAD_CELLS]))
+        step = max(1, UPLOAD_CELLS // k**3)
+        for s in range(0, len(host.bricks), step):
+            part = np.ascontiguousarray(host.bricks[s:s + step], dtype=np.int32)
+            kl.write_coarse_bricks(self, s, part, len(part))
+        self.nbytes = {"index": index_bytes, "bricks": 4 * host.bricks.size}
+
+
+def codes_over_bounds(host: coarse_field.CoarseField) -> np.ndarray:
+    """The field's codes as one grid over the bounds (X, Y, Z) int32 (for small maps)."""
+    k = host.cells_per_block
+    codes = np.full(np.asarray(host.coarse_dims) * k, coarse_field.COARSE_UNKNOWN, np.int32)
+    local = np.stack(np.meshgrid(*[np.arange(k)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    at = (host.block_coords.astype(np.int64) * k)[:, None, :] + local[None]
+    codes[at[..., 0], at[..., 1], at[..., 2]] = host.bricks[host.block_slots].reshape(
+        len(host.block_slots), -1)
+    return codes
 
 
 class ScanWeigher:
@@ -62,8 +127,8 @@ class ScanWeigher:
             self._codes = ti.field(ti.i32, shape=(tsdf.capacity + 2, kl.BLOCK, kl.BLOCK,
                                                   kl.WORDS_Z))
             kl.build_codes(tsdf, self._codes, tsdf.n_blocks, cfg.match_dist_m)
-        self._coarse = None  # the coarse search field on the device, once built
-        self._coarse_host: sensor_model.CoarseField | None = None
+        self._coarse: DeviceCoarseField | None = None  # the coarse search field, once built
+        self._coarse_host: coarse_field.CoarseField | None = None
 
     def set_sigma(self, sigma_m: float) -> bool:
         """Use the hit term with `sigma_m`; True when it changed (log-likelihoods change
@@ -82,10 +147,21 @@ class ScanWeigher:
         """The coarse distance field of the map, once (the first global search)."""
         if self._coarse is not None:
             return
-        host = sensor_model.coarse_field(self.tsdf, self.cfg)
-        self._coarse = ti.field(ti.i32, shape=host.codes.shape)
-        self._coarse.from_numpy(host.codes)
+        host = coarse_field.coarse_field(self.tsdf, self.cfg)
+        self._coarse = DeviceCoarseField(host, coarse_layout(host))
         self._coarse_host = host
+
+    @property
+    def coarse_summary(self) -> dict | None:
+        """The coarse search field once built: its cell, blocks with a slot, bricks and device
+        bytes (slot index, bricks)."""
+        if self._coarse is None:
+            return None
+        host = self._coarse_host
+        return {"cell_m": host.cell_m, "blocks": len(host.block_coords),
+                "bricks": len(host.bricks), "layout": self._coarse.layout,
+                "index_bytes": self._coarse.nbytes["index"],
+                "brick_bytes": self._coarse.nbytes["bricks"]}
 
     def upload_scan(self, pts: np.ndarray) -> None:
         """The reduced scan to the device, in Morton order of map blocks."""
@@ -123,11 +199,11 @@ class ScanWeigher:
     def coarse_likelihood(self, p: ParticleSet, n_points: int, sigma_m: float) -> None:
         """Like scan_likelihood, with the coarse search model at `sigma_m`."""
         field = self._coarse_host
-        self._coarse_table.from_numpy(coarse_table(self.cfg, sigma_m))
+        self._coarse_table.from_numpy(coarse_field.coarse_table(self.cfg, sigma_m))
         self._sort_by_pose_cell(p, field.cell_m)
         kl.coarse_scan_log_likelihood(self._coarse, ti.math.vec3(*field.origin_m),
                                       1.0 / field.cell_m, self._order, p.pos, p.quat, p.n,
                                       self._points, n_points, self._coarse_table,
-                                      coarse_match_codes(self.cfg),
+                                      coarse_field.coarse_match_codes(self.cfg),
                                       self.cfg.tempering(n_points), p.log_w, p.match,
                                       p.ll_mean)

@@ -243,7 +243,7 @@ def test_spatial_order_is_a_permutation_along_a_z_curve():
 
 
 def coarse_case(max_dist_m=0.45):
-    from mcl3d.localization.sensor_model import coarse_field
+    from mcl3d.localization.coarse_field import coarse_field
 
     cfg = SensorModelConfig(coarse_cell_m=VOX, coarse_max_dist_m=max_dist_m, match_dist_m=0.12)
     return cfg, coarse_field(floor_map(), cfg)
@@ -252,10 +252,10 @@ def coarse_case(max_dist_m=0.45):
 def test_coarse_field_is_the_distance_to_the_nearest_surface_cell(ti_runtime):
     """Codes against a brute-force distance between cell centres; far cells split into
     observed (far-free code) and unknown (the unknown block, the never-observed voxels)."""
-    from mcl3d.localization.sensor_model import COARSE_BINS
+    from mcl3d.localization.coarse_field import COARSE_BINS
 
     cfg, field = coarse_case()
-    assert field.cell_m == pytest.approx(VOX) and field.codes.shape == (16, 16, 16)
+    assert field.cell_m == pytest.approx(VOX) and field.cells_per_block == 8
     g = np.stack(np.meshgrid(*(np.arange(16),) * 3, indexing="ij"), axis=-1).reshape(-1, 3)
     surface_k = int(FLOOR_Z / VOX)
     in_free_block = (g[:, 0] >= 8) & (g[:, 1] >= 8) & (g[:, 2] >= 8)
@@ -263,7 +263,7 @@ def test_coarse_field_is_the_distance_to_the_nearest_surface_cell(ti_runtime):
     dist = np.sqrt(((g[:, None, :] - surf[None]) ** 2).sum(-1)).min(1) * VOX
     unknown = ((g[:, 0] >= 8) & (g[:, 1] >= 8) & (g[:, 2] < 8)) | (
         (g[:, 0] == 0) & (g[:, 1] < 8) & (g[:, 2] < 8))
-    code = field.codes[g[:, 0], g[:, 1], g[:, 2]]
+    code = field.codes_at(g)
     near = dist < cfg.coarse_max_dist_m - 1e-6
     np.testing.assert_array_equal(code[near], np.minimum(
         (dist[near] * COARSE_BINS / cfg.coarse_max_dist_m).astype(int), COARSE_BINS - 1))
@@ -271,47 +271,131 @@ def test_coarse_field_is_the_distance_to_the_nearest_surface_cell(ti_runtime):
     np.testing.assert_array_equal(code[~near & unknown], COARSE_BINS + 1)
 
 
-def test_coarse_kernel_matches_numpy_twin(ti_runtime):
+def coarse_particles(rng, n, m, lo, hi, spread_m):
+    """n poses uniform in [lo, hi) with uniform rotations, m points around the sensor."""
+    positions = rng.uniform(lo, hi, size=(n, 3))
+    quats = geometry.rot_to_quat(geometry.random_rotations(rng, n))
+    return positions, quats, rng.normal(scale=spread_m, size=(m, 3))
+
+
+def run_coarse(kernel, field, origin_m, cell_m, positions, quats, points, cfg, sigma_m):
+    """(log-weight increment, match, mean ll) of `kernel` (the coarse kernel's signature)
+    on the device field `field`."""
     import taichi as ti
 
-    from mcl3d.kernels.likelihood import coarse_scan_log_likelihood
-    from mcl3d.localization.sensor_model import (
-        COARSE_BINS,
-        coarse_log_likelihood_numpy,
-        coarse_match_codes,
-        coarse_table,
-    )
+    from mcl3d.localization.coarse_field import coarse_match_codes, coarse_table
 
-    cfg, field = coarse_case()
-    rng = np.random.default_rng(4)
-    n, m = 41, 29
-    positions = rng.uniform([-0.3, -0.3, 0.3], [1.9, 1.9, 1.7], size=(n, 3))
-    quats = geometry.rot_to_quat(geometry.random_rotations(rng, n))
-    points = rng.normal(scale=0.6, size=(m, 3))
-    table = coarse_table(cfg, 0.3)
+    n, m = len(positions), len(points)
     pos = ti.Vector.field(3, ti.f32, shape=n)
     quat = ti.Vector.field(4, ti.f32, shape=n)
     pts = ti.Vector.field(3, ti.f32, shape=m)
+    table = coarse_table(cfg, sigma_m)
     tab = ti.field(ti.f32, shape=len(table))
-    codes = ti.field(ti.i32, shape=field.codes.shape)
     log_w, match, ll_mean = (ti.field(ti.f32, shape=n) for _ in range(3))
     order = ti.field(ti.i32, shape=n)
     pos.from_numpy(positions.astype(np.float32))
     quat.from_numpy(quats.astype(np.float32))
     pts.from_numpy(points.astype(np.float32))
     tab.from_numpy(table)
-    codes.from_numpy(field.codes)
     log_w.from_numpy(np.full(n, 1.0, np.float32))
-    order.from_numpy(rng.permutation(n).astype(np.int32))
-    coarse_scan_log_likelihood(codes, ti.math.vec3(*field.origin_m), 1.0 / field.cell_m, order,
-                               pos, quat, n, pts, m, tab, coarse_match_codes(cfg),
-                               cfg.tempering(m), log_w, match, ll_mean)
+    order.from_numpy(np.random.default_rng(n).permutation(n).astype(np.int32))
+    kernel(field, ti.math.vec3(*origin_m), 1.0 / cell_m, order, pos, quat, n, pts, m, tab,
+           coarse_match_codes(cfg), cfg.tempering(m), log_w, match, ll_mean)
+    return log_w.to_numpy() - 1.0, match.to_numpy(), ll_mean.to_numpy()
+
+
+@pytest.mark.parametrize("layout", ["codes", "slots", "tiles"])
+def test_coarse_kernel_matches_numpy_twin(ti_runtime, layout):
+    from mcl3d.kernels.likelihood import coarse_scan_log_likelihood
+    from mcl3d.localization.coarse_field import (
+        COARSE_BINS,
+        coarse_log_likelihood_numpy,
+        coarse_match_codes,
+        coarse_table,
+    )
+    from mcl3d.localization.weighing import DeviceCoarseField
+
+    cfg, field = coarse_case()
+    rng = np.random.default_rng(4)
+    positions, quats, points = coarse_particles(rng, 41, 29, [-0.3, -0.3, 0.3], [1.9, 1.9, 1.7],
+                                                0.6)
+    m = len(points)
+    device = DeviceCoarseField(field, layout)
+    ll, match, mean = run_coarse(coarse_scan_log_likelihood, device, field.origin_m,
+                                 field.cell_m, positions, quats, points, cfg, 0.3)
+    table = coarse_table(cfg, 0.3)
     r_ll, r_match, r_mean = coarse_log_likelihood_numpy(
         field, positions, quats, points, table, coarse_match_codes(cfg), cfg.tempering(m))
-    per_point = np.abs(ll_mean.to_numpy() - r_mean) * m
+    per_point = np.abs(mean - r_mean) * m
     assert np.mean(per_point < 1e-3) > 0.9  # f32: a point on a cell face may differ
-    np.testing.assert_allclose(log_w.to_numpy() - 1.0, r_ll, atol=cfg.tempering(m) * 4.0)
-    assert np.mean(np.abs(match.to_numpy() - r_match) < 1e-6) > 0.9
+    np.testing.assert_allclose(ll, r_ll, atol=cfg.tempering(m) * 4.0)
+    assert np.mean(np.abs(match - r_match) < 1e-6) > 0.9
     # the table: best on a surface, the random floor far from it, free below, unknown neutral
     assert table[0] > table[COARSE_BINS - 1] > cfg.log_free
     assert table[-1] == pytest.approx(cfg.log_unknown)
+
+
+def dense_coarse_kernel():
+    """The former kernel over a dense (X, Y, Z) grid of codes, as the reference."""
+    import taichi as ti
+
+    from mcl3d.kernels.se3 import quat_to_mat
+
+    @ti.kernel
+    def kernel(field: ti.template(), origin: ti.math.vec3, inv_cell: ti.f32,
+               order: ti.template(), pos: ti.template(), quat: ti.template(), n: ti.i32,
+               pts: ti.template(), n_pts: ti.i32, table: ti.template(), match_codes: ti.i32,
+               tempering: ti.f32, log_w: ti.template(), match: ti.template(),
+               ll_mean: ti.template()):
+        dims = ti.static(field.shape)
+        ti.loop_config(block_dim=64)
+        for k in range(n):
+            i = order[k]
+            R = quat_to_mat(quat[i])
+            t = (pos[i] - origin) * inv_cell
+            Rs = R * inv_cell
+            total = 0.0
+            hits = 0
+            for j in range(n_pts):
+                g = ti.cast(ti.floor(Rs @ pts[j] + t), ti.i32)
+                inside = (g[0] >= 0) & (g[0] < dims[0]) & (g[1] >= 0) & (g[1] < dims[1]) & (
+                    g[2] >= 0) & (g[2] < dims[2])
+                gc = ti.select(inside, g, 0)
+                code = ti.select(inside, field[gc[0], gc[1], gc[2]], 257)
+                total += table[code]
+                hits += ti.cast(code < match_codes, ti.i32)
+            inv_m = 1.0 / ti.max(n_pts, 1)
+            log_w[i] += tempering * total
+            match[i] = hits * inv_m
+            ll_mean[i] = total * inv_m
+
+    return kernel
+
+
+@pytest.mark.parametrize("layout", ["codes", "slots", "tiles"])
+def test_coarse_kernel_gives_the_dense_kernels_results(ti_runtime, layout):
+    """On the localization tests' room (0.2 m cells, 4^3 per block), particles inside and
+    around it: the sparse field gives bit for bit the former dense field's results."""
+    import taichi as ti
+    from support.dense_coarse_field import dense_codes
+    from support.localize_world import build_map
+
+    from mcl3d.kernels.likelihood import coarse_scan_log_likelihood
+    from mcl3d.localization.coarse_field import coarse_field
+    from mcl3d.localization.weighing import DeviceCoarseField
+
+    tsdf = build_map(0.1)
+    cfg = SensorModelConfig(coarse_cell_m=0.2)
+    field = coarse_field(tsdf, cfg)
+    codes, cell = dense_codes(tsdf, cfg)
+    dense = ti.field(ti.i32, shape=codes.shape)
+    dense.from_numpy(codes)
+    lo, hi = tsdf.geometry.extent_m
+    args = (*coarse_particles(np.random.default_rng(6), 300, 96, lo - 1.0, hi + 1.0, 3.0), cfg,
+            0.4)
+    got = run_coarse(coarse_scan_log_likelihood, DeviceCoarseField(field, layout),
+                     field.origin_m, field.cell_m, *args)
+    want = run_coarse(dense_coarse_kernel(), dense, field.origin_m, cell, *args)
+    for a, b in zip(got, want, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert np.ptp(want[2]) > 0.5  # particles in and around the room score differently

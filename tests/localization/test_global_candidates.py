@@ -137,24 +137,6 @@ def test_a_drone_over_a_crate_stays_in_the_band():
     assert 17 in keys  # 3.53 m above the floor, 1.93 m above the crate
 
 
-def placed_together(parts, voxel_size_m: float):
-    """One map holding each (map, offset in blocks) at its offset: bounds over all of them,
-    blocks and FREE cells copied (the maps share voxel size, truncation and block grid)."""
-    from mcl3d.maps.tsdf import MapGeometry, TsdfMap
-
-    first = parts[0][0]
-    dims = np.max([np.asarray(m.coarse_dims) + off for m, off in parts], axis=0)
-    g = MapGeometry(voxel_size_m, first.truncation_m, first.origin_m, tuple(int(d) for d in dims))
-    data = [(m.blocks(), np.asarray(off, np.int32)) for m, off in parts]
-    n = sum(len(d.coords) for d, _ in data)
-    tsdf = TsdfMap(g, n, writable=False, capacity_tiles=4096)
-    for d, off in data:
-        tsdf.allocate(d.coords + off)
-        tsdf.write_blocks(d.coords + off, d.sdf, d.weight)
-        tsdf.mark_free(d.free_coords + off)
-    return tsdf
-
-
 @pytest.fixture(scope="module")
 def far_apart(maps):
     """The hall and the room (both at 10 cm) 1 km apart in x and y and 100 m in z: 1.6
@@ -162,7 +144,7 @@ def far_apart(maps):
     room = localize_world.build_map(0.1)
     hall = maps["hall"]
     assert room.origin_m == hall.origin_m
-    return room, hall, placed_together([(hall, (0, 0, 0)), (room, FAR_BLOCKS)], 0.1)
+    return room, hall, localize_world.placed_together([(hall, (0, 0, 0)), (room, FAR_BLOCKS)], 0.1)
 
 
 def test_candidates_of_rooms_a_kilometre_apart(far_apart, ti_runtime):
@@ -182,9 +164,36 @@ def test_candidates_of_rooms_a_kilometre_apart(far_apart, ti_runtime):
         np.testing.assert_allclose(got.corners_m, want, atol=1e-3)
 
 
+def test_coarse_field_of_rooms_a_kilometre_apart(far_apart, ti_runtime):
+    """The coarse search field of the joint map holds each room's bricks (the same codes at
+    every cell of each room's bounds) and nothing between them."""
+    from mcl3d.localization.coarse_field import coarse_field
+    from mcl3d.localization.sensor_model import SensorModelConfig
+
+    room, hall, joint = far_apart
+    cfg = SensorModelConfig(coarse_cell_m=0.8)  # the joint bounds' cell: one per block
+    field = coarse_field(joint, cfg)
+    k = field.cells_per_block
+    assert coarse_field(joint, SensorModelConfig()).cell_m == pytest.approx(0.8) and k == 1
+    bricked = field.block_coords[field.block_slots >= 2]
+    by_a_room = np.zeros(len(bricked), bool)
+    for part, offset in ((hall, (0, 0, 0)), (room, FAR_BLOCKS)):
+        own = coarse_field(part, cfg)
+        g = np.stack(np.meshgrid(*[np.arange(d * k) for d in part.coarse_dims], indexing="ij"),
+                     axis=-1).reshape(-1, 3)
+        np.testing.assert_array_equal(field.codes_at(g + np.asarray(offset) * k),
+                                      own.codes_at(g))
+        by_a_room |= np.all((bricked >= np.asarray(offset) - 2)
+                            & (bricked < np.asarray(offset) + part.coarse_dims + 2), axis=1)
+    assert by_a_room.all()  # within reach (1.5 m, 2 blocks) of a room's bounds
+    assert len(bricked) > 100
+    assert field.bricks.nbytes < 64 << 20
+
+
 def test_global_start_in_rooms_a_kilometre_apart(far_apart, ti_runtime):
     """Particles start in both rooms; scans of the room bring the filter to its pose 1 km
-    away (no coarse search phase: its field is still a dense grid over the bounds)."""
+    away, with the default coarse search phase (its field holds bricks near the rooms
+    only, indexed through tiles: a few MiB where a dense grid would take terabytes)."""
     from mcl3d.localization.localization_config import LocalizerConfig
     from mcl3d.localization.localizer import Localizer
 
@@ -192,8 +201,7 @@ def test_global_start_in_rooms_a_kilometre_apart(far_apart, ti_runtime):
     shift = geometry.se3(np.eye(3), np.asarray(FAR_BLOCKS) * joint.geometry.block_size_m)
     scanner = localize_world.Scanner(seed=2)
     path = localize_world.path(30)
-    cfg = LocalizerConfig.model_validate({"particles": 20000, "seed": 3,
-                                          "sensor": {"coarse_sigma_m": 0.0}})
+    cfg = LocalizerConfig.model_validate({"particles": 20000, "seed": 3})
     loc = Localizer(joint, cfg, imu_roll_pitch=(0.0, 0.0))
     loc.init_global()
     pos, _, _ = loc.particles.host()
@@ -205,3 +213,5 @@ def test_global_start_in_rooms_a_kilometre_apart(far_apart, ti_runtime):
         T_prev = T
     err = np.linalg.norm(r.T_map_lidar[:3, 3] - (shift @ path[-1])[:3, 3])
     assert r.state == "converged" and err < 0.2, (r.state, err)
+    field = loc.weigher.coarse_summary
+    assert field["layout"] == "tiles" and field["index_bytes"] + field["brick_bytes"] < 64 << 20

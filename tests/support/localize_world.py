@@ -160,3 +160,21 @@ def save_room_map(path, voxel_size_m: float = 0.05, offset_m=(0.0, 0.0, 0.0)) ->
     tsdf = build_from_mesh(mesh.vertices + np.asarray(offset_m), mesh.triangles,
                            BuildConfig(voxel_size_m=voxel_size_m))
     save_map(path, tsdf, source={"kind": "test room"}, build={})
+
+
+def placed_together(parts, voxel_size_m: float):
+    """One map holding each (map, offset in blocks) at its offset: bounds over all of them,
+    blocks and FREE cells copied (the maps share voxel size, truncation and block grid)."""
+    from mcl3d.maps.tsdf import MapGeometry, TsdfMap
+
+    first = parts[0][0]
+    dims = np.max([np.asarray(m.coarse_dims) + off for m, off in parts], axis=0)
+    g = MapGeometry(voxel_size_m, first.truncation_m, first.origin_m, tuple(int(d) for d in dims))
+    data = [(m.blocks(), np.asarray(off, np.int32)) for m, off in parts]
+    n = sum(len(d.coords) for d, _ in data)
+    tsdf = TsdfMap(g, n, writable=False, capacity_tiles=4096)
+    for d, off in data:
+        tsdf.allocate(d.coords + off)
+        tsdf.write_blocks(d.coords + off, d.sdf, d.weight)
+        tsdf.mark_free(d.free_coords + off)
+    return tsdf
