@@ -161,7 +161,7 @@ nothing protects a light true mode among uniform 6-DoF particles. Not yet run: m
 from a log, the arena with an OS0-64 and the σ sweep, five seeds.
 """),
     "study_ambiguity": (
-        "2026-11-26",
+        "2026-11-26 (the second table: 21:00-23:10)",
         r"""
 `python bench/study_ambiguity.py` (2-core shared Xeon, cpu backend; 100,000 particles,
 global init, the range gate at 6 m as a user with a short view would set it; maps built from
@@ -177,7 +177,17 @@ it had let the true place die within 6 s (see docs/sensor-model.md, "place evide
 | office | 1–3 | 1692 | 0 | 3.6 s | 3 of 3 |
 | arena | 1–3 | 1013 | 0 | 3.6 s | 3 of 3 |
 
-One simulated log per world (world seed 1), the filter seeds varied; maps from the mesh. The
+Again with the places' evidence on the device (sessions 15 and 16, commits ad9b488 and
+5a56884; log seeds vary the sensor noise and dropouts on the same route, filter seeds the
+particles):
+
+| world (6 m view, 100,000 particles) | runs (log seed / filter seeds) | scans reported `converged` | of them > 1 m or 10° off | first `converged` on the truth | ends on the truth |
+| --- | --- | --- | --- | --- | --- |
+| warehouse | 6 (1/1–3, 2/1–2, 3/1) | 1691 | 0 | 70.0–77.4 s (after the ramp in 6 of 6) | 6 of 6 |
+| office | 5 (1/2–3, 2/1–2, 3/1) | 2820 | 0 | 3.6 s | 5 of 5 |
+| arena | 5 (1/2–3, 2/1–2, 3/1) | 1697 | 0 | 3.6 s | 5 of 5 |
+
+One simulated log per world and log seed (world seed 1), the filter seeds varied; maps from the mesh. The
 office and arena `ground` routes start where a 6 m view already tells the place, so they
 converge at 3.6 s: no false claims there, but no hard ambiguity either. The office `kidnap`
 log with the same 6 m view (50,000 particles, one run) is the ambiguous office case: the
