@@ -13,7 +13,8 @@ every 2 m along every street (directions uniform over azimuth, elevation -30..+4
 
 The build runs the build-map pipeline in this process (the same code the command runs) and
 records per stage its wall time, process cpu time and peak RSS (sampled every 20 ms).
-Then the map is loaded and MCL tracks a VLP-16-like lidar (bench_km_map.Scanner) over
+Then the map is loaded, its surface voxels (every 4th chunk of blocks) are compared with
+the world mesh (distance), and MCL tracks a VLP-16-like lidar (bench_km_map.Scanner) over
 --track-scans scans 1 m apart along one street, from the true first pose.
 
     python bench/bench_city_map.py [--quick] [--points 20000000] [--extent-m 1200]
@@ -37,6 +38,7 @@ POSE_STEP_M = 2.0
 MAX_RANGE_M = 60.0
 RAYS_PER_CAST = 1 << 20
 FREE_STAGE = "mark free space"  # mcl3d.maps.build.FREE_STAGE: the pipeline writes next
+SURFACE_SAMPLE_EVERY = 4  # chunks of blocks whose surface is compared with the mesh
 
 
 def street_positions(extent_m: float, n: int) -> np.ndarray:
@@ -259,11 +261,12 @@ def main() -> None:
     write_xyz_ply(point_map(mesh, positions, n_points, args.seed), ply)
     generate_s = time.perf_counter() - t0
     stages, total = build_map(ply, tsdf_path, args.voxel_m)
-    tracking = track_in(tsdf_path, mesh, tracking_route(extent, args.streets, n_track), args)
+    tracking, surface = track_in(tsdf_path, mesh,
+                                 tracking_route(extent, args.streets, n_track), args)
     figures = {"extent_m": extent, "streets_each_way": args.streets, "points": n_points,
                "street_km": 2 * args.streets * extent / 1000, "voxel_m": args.voxel_m,
                "generate_s": generate_s, "stages": stages, "total": total,
-               "tracking": tracking}
+               "tracking": tracking, "surface_error": surface}
     figures["tables"] = tables(figures)
     figures["notes"] = [
         f"procedural city, seed {args.seed}: {args.streets} streets each way over "
@@ -278,13 +281,38 @@ def main() -> None:
     print("wrote", run.write(figures))
 
 
-def track_in(tsdf_path: Path, mesh, poses: np.ndarray, args) -> dict:
+def track_in(tsdf_path: Path, mesh, poses: np.ndarray, args) -> tuple[dict, dict]:
+    """Tracking in the map file, and its surface's distance to the world mesh."""
     from bench_km_map import Scanner, track
 
     from mcl3d.maps.map_file import load_map
 
     loaded = load_map(tsdf_path)
-    return track(loaded, Scanner(mesh, args.seed), poses, args.particles, args.seed)
+    return (track(loaded, Scanner(mesh, args.seed), poses, args.particles, args.seed),
+            surface_error(loaded, mesh))
+
+
+def surface_error(tsdf, mesh, every: int = SURFACE_SAMPLE_EVERY) -> dict:
+    """Distance from the map's surface voxels (|sdf| under half a voxel diagonal) to the
+    world mesh, over every `every`-th chunk of blocks (the map is never copied whole)."""
+    import open3d as o3d
+
+    from mcl3d.maps.tsdf import BlockData, surface_points
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(mesh.vertices.astype(np.float32)),
+                        o3d.core.Tensor(mesh.triangles.astype(np.uint32)))
+    no_free = np.zeros((0, 3), np.int32)
+    dist = []
+    for k, (c, d, w) in enumerate(tsdf.block_chunks()):
+        if k % every == 0:
+            pts = surface_points(tsdf.geometry, BlockData(c, d, w, no_free))
+            query = o3d.core.Tensor(pts.astype(np.float32))
+            dist.append(scene.compute_distance(query).numpy())
+    dist = np.concatenate(dist)
+    return {"surface_voxels_sampled": len(dist), "mean_m": float(dist.mean()),
+            "median_m": float(np.median(dist)), "p95_m": float(np.percentile(dist, 95)),
+            "within_voxel": float(np.mean(dist <= tsdf.geometry.voxel_size_m))}
 
 
 def tables(f: dict) -> dict:
@@ -296,11 +324,12 @@ def tables(f: dict) -> dict:
     t = f["total"]
     rows.append({"stage": "total", "wall s": round(t["wall_s"], 1),
                  "cpu s": round(t["cpu_s"], 1), "peak RSS MiB": round(t["peak_rss_mib"])})
-    err = f["tracking"]["position_error_m"]
+    err, surf = f["tracking"]["position_error_m"], f["surface_error"]
     return {caption: rows, f"Map and tracking ({f['voxel_m'] * 100:.0f} cm)": [
         {"blocks": t["blocks"], "free blocks": t["free_blocks"], "tiles": t["tiles"],
-         "file MiB": round(t["file_mib"], 1), "tracking mean / max m":
-             f"{err['mean']:.3f} / {err['max']:.3f}"}]}
+         "file MiB": round(t["file_mib"], 1),
+         "surface to mesh median / p95 m": f"{surf['median_m']:.3f} / {surf['p95_m']:.3f}",
+         "tracking mean / max m": f"{err['mean']:.3f} / {err['max']:.3f}"}]}
 
 
 if __name__ == "__main__":

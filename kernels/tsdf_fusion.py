@@ -1,7 +1,7 @@
 """The fusion kernels: a scan in two passes (scan_allocate, then scan_fuse: truncation
-bands + free-space carving), oriented points (points_allocate, points_fuse), and the end of
-a build, when the running sums become distances (finalize_blocks, refine_free_voxels,
-unmark_free_voxels). The map container is described in `tsdf_lookup`.
+bands + free-space carving) and the end of a build, when the running sums become distances
+(finalize_blocks, refine_free_voxels, unmark_free_voxels); point-cloud maps' bands are in
+point_fusion. The map container is described in `tsdf_lookup`.
 """
 
 import taichi as ti
@@ -9,18 +9,16 @@ import taichi as ti
 from mcl3d.kernels.se3 import quat_conj, quat_exp, quat_log, quat_mul, quat_normalize, quat_rotate
 from mcl3d.kernels.spread import spread_item, spread_length
 from mcl3d.kernels.tsdf_band import (
-    accumulate,
     allocate_patch,
     band_patch,
     band_samples,
     column_into_slots,
-    exp_nonpositive,
     flush_slots,
     footprint_steps,
     max_band_samples,
     tangent_basis,
 )
-from mcl3d.kernels.tsdf_blocks import allocate_block, clear_sums
+from mcl3d.kernels.tsdf_blocks import clear_sums
 from mcl3d.kernels.tsdf_carve import carve_in_front, claim_carve_tiles, dense_range
 from mcl3d.kernels.tsdf_lookup import (
     BLOCK,
@@ -29,9 +27,7 @@ from mcl3d.kernels.tsdf_lookup import (
     ivec3,
     vec3,
     vec4,
-    voxel_center,
     voxel_dw,
-    world_to_grid,
 )
 
 
@@ -200,45 +196,6 @@ def fuse_run(m: ti.template(), ray_p: ti.template(), ray_n: ti.template(),
                 column_into_slots(m, p, nr, behind_m, k_w, n_s, slot_g, slot_wd, slot_w, cb,
                                   bid)
     flush_slots(m, slot_g, slot_wd, slot_w)
-
-
-# ------------------------------------------------------------ points with normals
-@ti.kernel
-def points_allocate(m: ti.template(), pts: ti.types.ndarray(dtype=vec3, ndim=1), n: ti.i32,
-                    radius_vox: ti.i32):
-    """Allocate every block within radius_vox voxels (a cube) of each world point."""
-    for i in range(n):
-        g = ti.cast(ti.floor(world_to_grid(m, pts[i])), ti.i32)
-        lo = (g - radius_vox) >> 3
-        hi = (g + radius_vox) >> 3
-        for bx in range(lo[0], hi[0] + 1):
-            for by in range(lo[1], hi[1] + 1):
-                for bz in range(lo[2], hi[2] + 1):
-                    allocate_block(m, bx, by, bz)
-
-
-@ti.kernel
-def points_fuse(m: ti.template(), pts: ti.types.ndarray(dtype=vec3, ndim=1),
-                nrm: ti.types.ndarray(dtype=vec3, ndim=1), n: ti.i32, radius_vox: ti.i32,
-                sigma_weight_m: ti.f32, behind_m: ti.f32):
-    """Point-to-plane signed distance of each point's oriented plane into nearby voxels.
-
-    Voxels of the cube of radius_vox within truncation in front of the plane and behind_m
-    behind it get d = (v - p).n, weighted by a Gaussian of their distance to the point, so
-    the nearest points dominate each voxel.
-    """
-    trunc = m.truncation_m
-    k = -0.5 / (sigma_weight_m * sigma_weight_m)
-    for i, dx, dy, dz in ti.ndrange(n, (-radius_vox, radius_vox + 1),
-                                    (-radius_vox, radius_vox + 1),
-                                    (-radius_vox, radius_vox + 1)):
-        p = pts[i]
-        nr = nrm[i]
-        g = ti.cast(ti.floor(world_to_grid(m, p)), ti.i32) + ivec3(dx, dy, dz)
-        v = voxel_center(m, g) - p
-        d = v.dot(nr)
-        if -behind_m <= d <= trunc:
-            accumulate(m, g, d, exp_nonpositive(k * v.dot(v)))
 
 
 # ------------------------------------------------------------------- end of a build

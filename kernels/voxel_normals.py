@@ -83,28 +83,38 @@ def estimate(pts: ti.types.ndarray(dtype=vec3, ndim=1),
              offsets: ti.types.ndarray(dtype=ti.i32, ndim=1), k: ti.i32, min_own: ti.i32,
              normals: ti.types.ndarray(dtype=vec3, ndim=1)):
     for i in range(n):
-        p = pts[i]
-        code = morton(cells[i])
-        level = LEVELS - 1
-        for lv in ti.static(range(LEVELS - 1)):
-            if level == LEVELS - 1:  # its own cell at level lv (a code shifted: that cell's)
-                c = find_cell(keys, offsets[lv], offsets[lv + 1], code >> (3 * LEVEL_SHIFT * lv))
-                if c >= 0 and ends[c] - starts[c] >= min_own:
-                    level = lv
-        own = code >> (3 * LEVEL_SHIFT * level)
-        dist = ti.Vector.zero(ti.f32, MAX_K)
-        nbr = ti.Vector.zero(ti.i32, MAX_K)
-        found = 0
-        far = 0
-        far_d2 = -1.0
-        parts = axis_parts(own)
-        for m in range(27):  # x slowest, z fastest
-            near = parts[0, m // 9] | parts[1, (m // 3) % 3] | parts[2, m % 3]
-            c = find_cell(keys, offsets[level], offsets[level + 1], near)
-            if c >= 0:
-                for j in range(starts[c], ends[c]):
-                    keep_nearest(j, (pts[j] - p).norm_sqr(), k, found, far, far_d2, dist, nbr)
-        normals[i] = plane_normal(pts, nbr, found, p)
+        nbr, found, _ = k_nearest(pts, cells, i, keys, starts, ends, offsets, k, min_own)
+        normals[i] = plane_normal(pts, nbr, found, pts[i])
+
+
+@ti.func
+def k_nearest(pts: ti.template(), cells: ti.template(), i: ti.i32, keys: ti.template(),
+              starts: ti.template(), ends: ti.template(), offsets: ti.template(), k: ti.i32,
+              min_own: ti.i32):
+    """(neighbours, how many, the farthest one's squared distance) of point i: its k
+    nearest in the 3x3x3 cells around its own at the level described above."""
+    p = pts[i]
+    code = morton(cells[i])
+    level = LEVELS - 1
+    for lv in ti.static(range(LEVELS - 1)):
+        if level == LEVELS - 1:  # its own cell at level lv (a code shifted: that cell's)
+            c = find_cell(keys, offsets[lv], offsets[lv + 1], code >> (3 * LEVEL_SHIFT * lv))
+            if c >= 0 and ends[c] - starts[c] >= min_own:
+                level = lv
+    own = code >> (3 * LEVEL_SHIFT * level)
+    dist = ti.Vector.zero(ti.f32, MAX_K)
+    nbr = ti.Vector.zero(ti.i32, MAX_K)
+    found = 0
+    far = 0
+    far_d2 = -1.0
+    parts = axis_parts(own)
+    for m in range(27):  # x slowest, z fastest
+        near = parts[0, m // 9] | parts[1, (m // 3) % 3] | parts[2, m % 3]
+        c = find_cell(keys, offsets[level], offsets[level + 1], near)
+        if c >= 0:
+            for j in range(starts[c], ends[c]):
+                keep_nearest(j, (pts[j] - p).norm_sqr(), k, found, far, far_d2, dist, nbr)
+    return nbr, found, far_d2
 
 
 @ti.func

@@ -26,6 +26,8 @@ from __future__ import annotations
 import json
 import zipfile
 import zlib
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -33,8 +35,9 @@ import numpy as np
 from mcl3d import __version__
 from mcl3d.core.errors import ConfigError, MapError
 from mcl3d.core.outputs import atomic_path
+from mcl3d.kernels import block_gather
 from mcl3d.maps.sparse_cells import MASK_BYTES, TILE, cells_to_masks, masks_to_cells, tiles_of
-from mcl3d.maps.tsdf import BLOCK, BlockData, MapGeometry, TsdfMap
+from mcl3d.maps.tsdf import BLOCK, CHUNK_BLOCKS, FREE, BlockData, MapGeometry, TsdfMap
 
 FORMAT = "mcl3d-tsdf"
 FORMAT_VERSION = 2
@@ -42,9 +45,10 @@ READ_VERSIONS = (1, 2)
 MEMBERS = {1: ("header", "block_coords", "sdf", "weight", "free_coords"),
            2: ("header", "block_coords", "sdf", "weight", "free_tiles", "free_masks")}
 ZIP_DATE = (1980, 1, 1, 0, 0, 0)  # every member's date (the earliest a zip can hold)
+COMPRESS_LEVEL = 1  # deflate level of every member
 
 
-def make_header(tsdf: TsdfMap, data: BlockData, source: dict, build: dict,
+def make_header(tsdf: TsdfMap, n_blocks: int, n_free_blocks: int, source: dict, build: dict,
                 f16: bool) -> dict:
     g = tsdf.geometry
     dtype = "float16" if f16 else "float32"
@@ -60,8 +64,8 @@ def make_header(tsdf: TsdfMap, data: BlockData, source: dict, build: dict,
         "block_size_voxels": BLOCK,
         "distance_dtype": dtype,
         "weight_dtype": dtype,
-        "n_blocks": len(data.coords),
-        "n_free_blocks": len(data.free_coords),
+        "n_blocks": n_blocks,
+        "n_free_blocks": n_free_blocks,
         "coarse_index": {"kind": "tiles", "tile_cells": TILE},
         "source": source,
         "build": build,
@@ -70,31 +74,87 @@ def make_header(tsdf: TsdfMap, data: BlockData, source: dict, build: dict,
 
 def save_map(path: Path, tsdf: TsdfMap, *, source: dict, build: dict,
              f16: bool = False) -> dict:
-    """Write the map atomically (a temp file renamed over `path`); returns the header."""
+    """Write the map atomically (a temp file renamed over `path`); returns the header.
+
+    Blocks go out in lexicographic order a chunk at a time, read straight from the map
+    (`_SortedBlocks`): a city's voxels are never copied to the host whole. Deflate level
+    COMPRESS_LEVEL: level 6 (savez's) takes 1.5x the cpu time for members 4 % smaller
+    (128 MiB of a city map's distances and weights).
+    """
     tsdf.finalize()
-    data = tsdf.blocks().sorted()
-    header = make_header(tsdf, data, source, build, f16)
-    dtype = np.float16 if f16 else np.float32
-    free_tiles, free_masks = cells_to_masks(data.free_coords)
+    blocks = _SortedBlocks(tsdf, np.float16 if f16 else np.float32)
+    header = make_header(tsdf, len(blocks.coords), len(blocks.free_coords), source, build, f16)
+    free_tiles, free_masks = cells_to_masks(blocks.free_coords)
     header["n_free_tiles"] = len(free_tiles)
     with atomic_path(Path(path)) as tmp, open(tmp, "wb") as f:
-        _write_npz(f, {"header": np.array(json.dumps(header)),
-                       "block_coords": data.coords.astype(np.int32),
-                       "sdf": data.sdf.astype(dtype), "weight": data.weight.astype(dtype),
+        _write_npz(f, {"header": np.array(json.dumps(header)), "block_coords": blocks.coords,
+                       "sdf": blocks.member(0), "weight": blocks.member(1),
                        "free_tiles": free_tiles, "free_masks": free_masks})
     return header
 
 
-def _write_npz(f, arrays: dict[str, np.ndarray]) -> None:
+class _SortedBlocks:
+    """A map's blocks in lexicographic order, each voxel array as a member written in chunks."""
+
+    def __init__(self, tsdf: TsdfMap, dtype):
+        self.tsdf, self.dtype = tsdf, np.dtype(dtype)
+        coords = tsdf.block_coord.to_numpy()[:tsdf.n_blocks]
+        self.ids = (np.lexsort(coords.T[::-1]) if len(coords) else np.arange(0)).astype(np.int32)
+        self.coords = coords[self.ids].astype(np.int32)
+        cells, values = tsdf.coarse_cells()
+        free = cells[values == FREE]
+        self.free_coords = free[np.lexsort(free.T[::-1])] if len(free) else free
+
+    def member(self, which: int) -> _Chunks:
+        """The distances (0) or weights (1), as chunks in block order."""
+        shape = (len(self.ids), BLOCK, BLOCK, BLOCK)
+        return _Chunks(shape, self.dtype, lambda: (
+            self._read(self.ids[s:s + CHUNK_BLOCKS])[which].astype(self.dtype, copy=False)
+            for s in range(0, len(self.ids), CHUNK_BLOCKS)))
+
+    def _read(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        sdf = np.empty((len(ids), BLOCK, BLOCK, BLOCK), np.float32)
+        weight = np.empty_like(sdf)
+        block_gather.read_blocks_at(self.tsdf, ids, len(ids), sdf, weight)
+        return sdf, weight
+
+
+@dataclass
+class _Chunks:
+    """An array written as consecutive C-order chunks (its .npy header first)."""
+
+    shape: tuple
+    dtype: np.dtype
+    chunks: Callable[[], Iterator[np.ndarray]]
+
+
+def _write_npz(f, arrays: dict[str, np.ndarray | _Chunks]) -> None:
     """What np.savez_compressed writes (one deflated .npy per member), but with ZIP_DATE on
     every member instead of the time of writing, so the bytes depend on the arrays alone."""
     with zipfile.ZipFile(f, "w", compression=zipfile.ZIP_DEFLATED, allowZip64=True) as zf:
         for name, array in arrays.items():
             info = zipfile.ZipInfo(f"{name}.npy", date_time=ZIP_DATE)
             info.compress_type = zipfile.ZIP_DEFLATED
+            _set_compress_level(info, COMPRESS_LEVEL)
             info.external_attr = 0o600 << 16  # -rw------- as savez gives its members
             with zf.open(info, "w", force_zip64=True) as member:
-                np.lib.format.write_array(member, np.asanyarray(array), allow_pickle=False)
+                if isinstance(array, _Chunks):
+                    np.lib.format.write_array_header_1_0(member, {
+                        "descr": np.lib.format.dtype_to_descr(array.dtype),
+                        "fortran_order": False, "shape": array.shape})
+                    for chunk in array.chunks():
+                        member.write(np.ascontiguousarray(chunk).data)
+                else:
+                    np.lib.format.write_array(member, np.asanyarray(array), allow_pickle=False)
+
+
+def _set_compress_level(info: zipfile.ZipInfo, level: int) -> None:
+    """A member's deflate level (ZipInfo.compress_level from Python 3.13, before that only
+    the private _compresslevel)."""
+    if hasattr(type(info), "compress_level"):
+        info.compress_level = level
+    else:
+        info._compresslevel = level
 
 
 def _open(path: Path):

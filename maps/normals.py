@@ -9,7 +9,8 @@ representatives below got only 51-61 % of the normals right on maps merged from 
 bad edge at a crease or across a thin wall flips everything behind it. Here:
 
 1. one representative per `cell_m` cell and layer along the normal (the two faces of a thin
-   wall share a cell, not a layer): a few per cent of the points;
+   wall share a cell, not a layer): a few per cent of the points (cells grow where that
+   would exceed MAX_REPRESENTATIVES);
 2. neighbours on one smooth surface compare directly; across a crease or between stacked
    surfaces, each point must lie on the same side of the other's plane (Koenig and Gumhold
    2009), trusted by how clearly it does, and not at all through a third surface;
@@ -42,6 +43,7 @@ CREASE_DOT = 0.5  # neighbours' normals more than 60 degrees apart meet at a cre
 STACKED_MIN_M = 0.05  # parallel neighbours this far off each other's plane: two surfaces
 STACKED_SHARE = 0.7  # ... and mostly in front of or behind each other, not beside
 PARALLEL_DOT = 0.9  # a surface this parallel to a crease's end may lie between its ends
+MAX_REPRESENTATIVES = 1 << 20  # bounds the representatives' graph (~1 GiB at most)
 POINT_CHUNK = 1 << 20  # points each point-wise step handles at once (bounds temporaries)
 EDGE_ROWS = 1 << 17  # representatives whose graph edges are compared at once
 
@@ -67,7 +69,7 @@ def orient_towards(points: np.ndarray, normals: np.ndarray, viewpoints: np.ndarr
 
 def orient_consistently(points: np.ndarray, normals: np.ndarray, cell_m: float) -> np.ndarray:
     """`normals` with signs that agree between neighbours, floors up and objects outward."""
-    rep, member = _representatives(points, _surface_keys(points, normals, cell_m))
+    rep, member = _representatives(points, _bounded_keys(points, normals, cell_m))
     rep_points, rep_normals = points[rep], normals[rep]
     edges = _Edges.of(rep_points, rep_normals)
     smooth = edges.smooth
@@ -110,6 +112,19 @@ def _surface_keys(points: np.ndarray, normals: np.ndarray, cell_m: float) -> np.
     canonical = normals * np.sign(normals[np.arange(len(normals)), axis])[:, None]
     layer = np.floor(np.einsum("ij,ij->i", points, canonical) / STACKED_MIN_M).astype(np.int64)
     return (cells[:, 0] << 43) | (cells[:, 1] << 23) | (cells[:, 2] << 3) | (layer & 7)
+
+
+def _bounded_keys(points: np.ndarray, normals: np.ndarray, cell_m: float) -> np.ndarray:
+    """_surface_keys with cells of cell_m, grown while they name more than MAX_REPRESENTATIVES
+    representatives (a sparse city map has about one point per 30 cm cell: its graph would
+    be every point's, gigabytes): the graph's memory stays bounded, whatever the points."""
+    for _ in range(4):
+        keys = _surface_keys(points, normals, cell_m)
+        n_reps = np.count_nonzero(np.diff(np.sort(keys))) + 1
+        if n_reps <= MAX_REPRESENTATIVES:
+            break
+        cell_m *= 1.1 * np.sqrt(n_reps / MAX_REPRESENTATIVES)  # surfaces: cells ~ 1 / edge^2
+    return keys
 
 
 def _representatives(points: np.ndarray, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -1,13 +1,14 @@
 """TSDF maps from point-cloud maps (what other SLAM systems export), fused in Taichi.
 
-Each point's tangent plane writes point-to-plane distances into the voxels of a cube of the
-truncation's radius around it; then cells clear of every point on the normals' side
-become FREE. Pools are sized from the cells the points' cubes touch, counted on the host,
-and grown and retried should they still overflow. A map whose blocks exceed SLAB_BLOCKS is
-fused slab by slab along x (each slab with the points whose cubes reach it, so every block
-gets the same sums as in one pass) into a read-only map of distances and weights: memory
-while building is 8 bytes a voxel for the map plus one slab's build sums (28 bytes a voxel),
-not 28 bytes a voxel for the whole city.
+Normals and spacing on the device (maps/point_normals.py, the points then in Morton order),
+oriented from the map itself or towards viewpoints (maps/normals.py); each point's band
+along its normal (kernels/point_fusion.py) takes point-to-plane distances; then cells
+clear of every point on the normals' side become FREE. Pools are sized from the cells the
+bands reach, counted on the host, and grown and retried should they still overflow. A map
+whose blocks exceed SLAB_BLOCKS is fused slab by slab along x (each slab with the runs of
+points whose bands reach it, so every block gets the same sums as in one pass) into a
+read-only map of distances and weights: memory while building is 8 bytes a voxel for the
+map plus one slab's build sums (28 bytes a voxel), not 28 bytes a voxel for the whole city.
 """
 
 from __future__ import annotations
@@ -17,117 +18,159 @@ from scipy.spatial import cKDTree
 
 from mcl3d.core.errors import MapError, PointCloudError
 from mcl3d.core.progress import Progress, ProgressCallback, report
-from mcl3d.kernels import tsdf_fusion
+from mcl3d.kernels import point_fusion
 from mcl3d.maps.build import BuildConfig, grown_capacity, grown_tiles, new_map
-from mcl3d.maps.normals import oriented_normals
+from mcl3d.maps.normals import orient_consistently, orient_towards
+from mcl3d.maps.point_normals import sorted_normals
 from mcl3d.maps.sparse_cells import CellLookup, cell_keys, dilate_cells, tiles_of, unique_keys
 from mcl3d.maps.tsdf import BLOCK, CHUNK_CELLS, MapGeometry, TsdfMap
 
+NORMALS_STAGE = "estimate normals"
+ORIENT_STAGE = "orient normals"
 ALLOCATE_STAGE = "allocate blocks"
 FUSE_POINTS_STAGE = "fuse points"
 FREE_STAGE = "mark free space"
-SLAB_BLOCKS = 1 << 17  # blocks fused at once (their build sums: ~1.8 GiB)
+SLAB_BLOCKS = 1 << 15  # blocks of one slab (their build sums: ~0.45 GiB, plus the columns beside)
+READ_ONLY_BLOCKS_PER_BUILD_BLOCK = 3  # a read-only block is 8 bytes a voxel, a building one 28
+SLAB_POOL_MARGIN = 1.3  # a slab's pool: its blocks plus 30 % for the columns beside it
+RUN_LENGTH = 32  # points (in Morton order) one fusion thread takes at a time
+FOOTPRINT_GAPS = 2.0  # a band patch spans this many mean spacings: scan lines leave gaps
 
 
 def build_from_points(points: np.ndarray, config: BuildConfig, *,
-                      normals: np.ndarray | None = None,
                       viewpoints: np.ndarray | None = None,
                       on_progress: ProgressCallback | None = None) -> TsdfMap:
-    """Signed distance from an oriented point cloud (map frame).
+    """Signed distance from a point cloud (map frame).
 
-    Without `normals` they are estimated and oriented (maps/normals.py: towards the
-    viewpoints, else consistently over the map). Voxels within the truncation in front of a
-    point's plane and behind_m behind it get its point-to-plane distance, weighted by their
+    Normals and spacing come from each point's k nearest (maps/point_normals.py; points
+    without a normal, on a line or nearly alone, are left out), oriented towards the
+    viewpoints, else consistently over the map (maps/normals.py). Voxels of each point's
+    band (kernels/point_fusion.py) get its point-to-plane distance, weighted by their
     distance to the point; blocks farther than the truncation from every point, on the
     normals' side, within free_margin_m, become FREE.
     """
-    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    pts = np.asarray(points, dtype=np.float32).reshape(-1, 3)
     pts = pts[np.isfinite(pts).all(axis=1)]
     if len(pts) < config.normal_neighbors:
         raise PointCloudError(f"the point cloud has {len(pts)} valid points; at least "
                               f"{config.normal_neighbors} are needed to estimate normals")
-    if normals is None:
-        normals = oriented_normals(pts, config.normal_neighbors, viewpoints,
-                                   config.orientation_cell_m,
-                                   lambda name: report(on_progress, Progress(name, 0, 1)))
-    nrm = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
-    if len(nrm) != len(pts):
-        raise PointCloudError(f"{len(nrm)} normals for {len(pts)} points")
-    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
+    report(on_progress, Progress(NORMALS_STAGE, 0, 1))
+    order, nrm, spacing = sorted_normals(pts, config.normal_neighbors)
+    keep = order[spacing > 0]
+    pts, nrm, spacing = pts[keep], nrm[spacing > 0], spacing[spacing > 0]
+    del order, keep
+    report(on_progress, Progress(ORIENT_STAGE, 0, 1))
+    if viewpoints is not None and len(viewpoints):
+        nrm = orient_towards(pts, nrm, np.asarray(viewpoints, dtype=np.float64))
+    else:
+        nrm = orient_consistently(pts, nrm, config.orientation_cell_m)
+    nrm = np.ascontiguousarray(nrm, dtype=np.float32)
+    steps = np.minimum(FOOTPRINT_GAPS * spacing / np.float32(config.voxel_size_m),
+                       max_footprint_steps(config)).astype(np.uint8)
+    del spacing
     geometry = MapGeometry.around(pts.min(axis=0), pts.max(axis=0), config.voxel_size_m,
                                   config.trunc_m, margin_m=config.trunc_m + config.free_margin_m)
     report(on_progress, Progress(ALLOCATE_STAGE, 0, 1))
-    fusion = _PointFusion(geometry, config, pts, nrm, on_progress)
+    fusion = _PointFusion(geometry, config, pts, nrm, steps, on_progress)
     tsdf = fusion.whole() if len(fusion.cells) <= SLAB_BLOCKS else fusion.by_slabs()
+    del fusion
     report(on_progress, Progress(FREE_STAGE, 0, 1))
     _mark_free_around_points(tsdf, pts, nrm, config)
     report(on_progress, Progress(FREE_STAGE, 1, 1))
     return tsdf
 
 
+def max_footprint_steps(config: BuildConfig) -> int:
+    """The widest patch, in half voxels of half-width: the truncation either side (the
+    reach of the cube the bands replace), so sparse surfaces stay closed."""
+    return int(np.ceil(2 * config.trunc_m / config.voxel_size_m))
+
+
 class _PointFusion:
-    """The points (f32), their cubes' cells and the tiles the map will need."""
+    """The points in Morton order (f32), their normals and band footprints, the blocks and
+    tiles the map will need."""
 
     def __init__(self, geometry: MapGeometry, config: BuildConfig, pts: np.ndarray,
-                 nrm: np.ndarray, on_progress: ProgressCallback | None):
+                 nrm: np.ndarray, steps: np.ndarray, on_progress: ProgressCallback | None):
         self.geometry, self.config, self.on_progress = geometry, config, on_progress
-        self.radius = int(np.ceil(config.trunc_m / config.voxel_size_m))
-        self.pts32 = np.ascontiguousarray(pts, dtype=np.float32)
-        self.nrm32 = np.ascontiguousarray(nrm, dtype=np.float32)
-        self.cells = _cube_cells(geometry, pts, self.radius)
+        self.behind_m = min(config.behind_m, config.trunc_m)
+        self.pts32, self.nrm32, self.steps = pts, nrm, steps
+        self.cells = band_cells(geometry, pts, nrm, steps, self.behind_m)
         reach = int(np.ceil(config.free_margin_m / geometry.block_size_m))
         self.tiles = len(tiles_of(dilate_cells(self.cells, reach, geometry.coarse_dims)))
         self.fused = 0
 
     def whole(self) -> TsdfMap:
         """One pass over all points into one writable map."""
-        tsdf = _points_map(self.geometry, self.config, self.pts32, self.radius,
-                           len(self.cells), self.tiles)
-        self._fuse(tsdf, self.pts32, self.nrm32)
+        tsdf = self._map(self.pts32, self.nrm32, self.steps, len(self.cells))
+        self._fuse(tsdf, self.pts32, self.nrm32, self.steps)
         tsdf.finalize()
         return tsdf
 
     def by_slabs(self) -> TsdfMap:
         """Slab by slab along x into a read-only map (see the module docstring)."""
-        if len(self.cells) > self.config.max_capacity_blocks:
+        if len(self.cells) > READ_ONLY_BLOCKS_PER_BUILD_BLOCK * self.config.max_capacity_blocks:
             raise MapError(
-                f"the map needs {len(self.cells)} blocks, more than max_capacity_blocks "
+                f"the map needs {len(self.cells)} blocks, more than "
+                f"{READ_ONLY_BLOCKS_PER_BUILD_BLOCK} x max_capacity_blocks "
                 f"{self.config.max_capacity_blocks}; raise it or use a larger voxel size",
                 setting="max_capacity_blocks")
-        out = TsdfMap(self.geometry, len(self.cells), writable=False,
+        # the host's band cells may miss a block a diagonal band crosses: a margin
+        capacity = len(self.cells) + len(self.cells) // 32 + 1024
+        out = TsdfMap(self.geometry, capacity, writable=False,
                       frame_id=self.config.frame_id, capacity_tiles=self.tiles)
         g = self.geometry
         gx = np.floor((self.pts32[:, 0] - np.float32(g.origin_m[0]))
-                      / np.float32(g.voxel_size_m)).astype(np.int64)
-        margin = self.radius + 1  # + 1: the kernels' f32 voxel of a point may differ by one
+                      / np.float32(g.voxel_size_m)).astype(np.int32)
+        # a band reaches the truncation along its normal and half a patch across it
+        # (+ 1: the kernels' f32 voxel of a point may differ by one)
+        margin = (int(np.ceil(self.config.trunc_m / g.voxel_size_m))
+                  + (max_footprint_steps(self.config) + 1) // 2 + 1)
 
         def points_of(x0, x1):
-            return np.flatnonzero((gx >= x0 * BLOCK - margin) & (gx < x1 * BLOCK + margin))
+            """Whole runs of points (the runs of one pass) with a point near the slab."""
+            near = (gx >= x0 * BLOCK - margin) & (gx < x1 * BLOCK + margin)
+            runs = np.flatnonzero(np.add.reduceat(near, np.arange(0, len(near), RUN_LENGTH)))
+            idx = (runs[:, None] * RUN_LENGTH + np.arange(RUN_LENGTH)).ravel()
+            return idx[idx < len(near)]
 
         slabs = _slabs(self.cells[:, 0], SLAB_BLOCKS)
-        needed = max(len(_cube_cells(g, self.pts32[points_of(*x)], self.radius)) for x in slabs)
+        # a slab's bands also reach the block columns beside it; how far into them (often
+        # a whole street's facade) the host does not count: the pool grows when short
+        inside = max(int(np.sum((self.cells[:, 0] >= x0) & (self.cells[:, 0] < x1)))
+                     for x0, x1 in slabs)
+        needed = int(inside * SLAB_POOL_MARGIN) + 1024
         slab = None  # one map for every slab, cleared between them: its kernels compile once
         for x0, x1 in slabs:
             sel = points_of(x0, x1)
-            pts, nrm = self.pts32[sel], self.nrm32[sel]
-            slab = _points_map(g, self.config, pts, self.radius, needed, self.tiles, slab)
-            self._fuse(slab, pts, nrm)
+            pts, nrm, steps = self.pts32[sel], self.nrm32[sel], self.steps[sel]
+            slab = self._map(pts, nrm, steps, needed, slab)
+            self._fuse(slab, pts, nrm, steps)
             slab.finalize()
-            data = slab.blocks()
-            keep = (data.coords[:, 0] >= x0) & (data.coords[:, 0] < x1)
-            out.allocate(data.coords[keep])
-            out.write_blocks(data.coords[keep], data.sdf[keep], data.weight[keep])
-            del data
+            for coords, sdf, weight in slab.block_chunks():
+                keep = (coords[:, 0] >= x0) & (coords[:, 0] < x1)
+                out.allocate(coords[keep])
+                out.write_blocks(coords[keep], sdf[keep], weight[keep])
         slab.destroy()
         return out
 
-    def _fuse(self, tsdf: TsdfMap, pts32: np.ndarray, nrm32: np.ndarray) -> None:
-        cfg, r = self.config, self.radius
-        per_launch = max(1, (4 << 20) // (2 * r + 1) ** 3)
-        for s in range(0, len(pts32), per_launch):
-            e = min(len(pts32), s + per_launch)
-            tsdf_fusion.points_fuse(tsdf, pts32[s:e], nrm32[s:e], e - s, r, cfg.sigma_w_m,
-                                    min(cfg.behind_m, cfg.trunc_m))
+    def _map(self, pts32, nrm32, steps, needed: int, reuse: TsdfMap | None = None) -> TsdfMap:
+        def allocate(m):
+            for s in range(0, len(pts32), CHUNK_CELLS):
+                e = min(len(pts32), s + CHUNK_CELLS)
+                point_fusion.points_allocate_band(m, pts32[s:e], nrm32[s:e],
+                                                  steps[s:e].astype(np.int32), e - s,
+                                                  self.behind_m)
+
+        return _points_map(self.geometry, self.config, allocate, needed, self.tiles, reuse)
+
+    def _fuse(self, tsdf: TsdfMap, pts32: np.ndarray, nrm32: np.ndarray,
+              steps: np.ndarray) -> None:
+        for s in range(0, len(pts32), CHUNK_CELLS):
+            e = min(len(pts32), s + CHUNK_CELLS)
+            point_fusion.points_fuse_band(tsdf, pts32[s:e], nrm32[s:e],
+                                          steps[s:e].astype(np.int32), e - s,
+                                          self.config.sigma_w_m, self.behind_m, RUN_LENGTH)
             self.fused += e - s
             report(self.on_progress, Progress(FUSE_POINTS_STAGE, self.fused, len(self.pts32)))
 
@@ -146,36 +189,49 @@ def _slabs(block_x: np.ndarray, max_blocks: int) -> list[tuple[int, int]]:
     return slabs
 
 
-def _cube_cells(geometry: MapGeometry, pts: np.ndarray, radius_vox: int) -> np.ndarray:
-    """The coarse cells (n, 3) that the cubes of radius_vox voxels around the points touch,
-    in (x, y, z) order.
-
-    Samples at most a block apart across each cube name every block it touches: listed on
-    the host so that the pools are sized once (one int64 key per point and offset, made
-    unique per chunk of points, so memory stays a few bytes a point)."""
+def band_cells(geometry: MapGeometry, pts: np.ndarray, nrm: np.ndarray, steps: np.ndarray,
+               behind_m: float) -> np.ndarray:
+    """The coarse cells (n, 3) that the points' bands reach, in (x, y, z) order, for sizing
+    the pools: the blocks of each patch's corner columns at their ends and middle (a band
+    shorter than a block crosses at most the blocks between those; a rare miss is caught by
+    the pools' overflow and retry). One int64 key per sample, made unique per chunk, so
+    memory stays a few bytes a point."""
     dims = np.asarray(geometry.coarse_dims, np.int64)
-    steps = np.unique(np.round(np.linspace(-radius_vox, radius_vox,
-                                           int(np.ceil(2 * radius_vox / BLOCK)) + 1)))
-    origin, voxel = np.asarray(geometry.origin_m), geometry.voxel_size_m
+    origin = np.asarray(geometry.origin_m, np.float32)
+    inv = np.float32(1.0 / geometry.voxel_size_m)
+    depths = np.float32([-behind_m, 0.5 * (geometry.truncation_m - behind_m),
+                         geometry.truncation_m])
     keys = [np.zeros(0, np.int64)]
     for s in range(0, len(pts), CHUNK_CELLS):
-        g = np.floor((pts[s:s + CHUNK_CELLS] - origin) / voxel).astype(np.int64)
-        for dx in steps:
-            for dy in steps:
-                for dz in steps:
-                    c = np.clip((g + np.array([dx, dy, dz], dtype=np.int64)) >> 3, 0, dims - 1)
-                    keys.append(unique_keys(cell_keys(c, dims)))
+        p, n = (pts[s:s + CHUNK_CELLS] - origin) * inv, nrm[s:s + CHUNK_CELLS]
+        half = 0.5 * steps[s:s + CHUNK_CELLS].astype(np.float32)[:, None]
+        e1, e2 = _tangents(n)
+        for a, b in ((0, 0), (-1, -1), (-1, 1), (1, -1), (1, 1)):
+            base = p + half * (a * e1 + b * e2) if a else p
+            for d in depths:
+                g = np.floor(base + (d * inv) * n).astype(np.int64) >> 3
+                keys.append(unique_keys(cell_keys(np.clip(g, 0, dims - 1), dims)))
         keys = [unique_keys(np.concatenate(keys))]
     k = keys[0]
     return np.stack([k // (dims[1] * dims[2]), (k // dims[2]) % dims[1], k % dims[2]], axis=1)
 
 
-def _points_map(geometry: MapGeometry, config: BuildConfig, pts32: np.ndarray, radius: int,
-                needed: int, tiles: int, reuse: TsdfMap | None = None) -> TsdfMap:
-    """A writable map with the points' blocks allocated, its pools sized to `needed` blocks
-    and `tiles` tiles (or `reuse`, cleared, when given); should a pool still overflow, it is
-    grown and the allocation run again (three tries, then the capacity error names what is
-    needed)."""
+def _tangents(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """tsdf_band.tangent_basis for (n, 3) unit normals."""
+    a = np.zeros_like(n)
+    use_y = np.abs(n[:, 0]) > 0.9
+    a[~use_y, 0], a[use_y, 1] = 1.0, 1.0
+    t1 = np.cross(n, a)
+    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    return t1, np.cross(n, t1)
+
+
+def _points_map(geometry: MapGeometry, config: BuildConfig, allocate, needed: int, tiles: int,
+                reuse: TsdfMap | None = None) -> TsdfMap:
+    """A writable map with the points' blocks allocated (`allocate(map)`), its pools sized
+    to `needed` blocks and `tiles` tiles (or `reuse`, cleared, when given); should a pool
+    still overflow, it is grown and the allocation run again (three tries, then the
+    capacity error names what is needed)."""
     for attempt in range(3):
         if attempt == 0 and reuse is not None:
             tsdf = reuse
@@ -183,13 +239,7 @@ def _points_map(geometry: MapGeometry, config: BuildConfig, pts32: np.ndarray, r
             tsdf.as_sums = True
         else:
             tsdf = new_map(geometry, config, needed, tiles)
-
-        def allocate(m=tsdf):
-            for s in range(0, len(pts32), CHUNK_CELLS):
-                e = min(len(pts32), s + CHUNK_CELLS)
-                tsdf_fusion.points_allocate(m, pts32[s:e], e - s, radius)
-
-        tsdf.relaunch_until_placed(allocate)
+        tsdf.relaunch_until_placed(lambda m=tsdf: allocate(m))
         if not tsdf.overflowed or attempt == 2:
             break
         needed, tiles = grown_capacity(tsdf, config), max(int(tiles * 1.25), grown_tiles(tsdf))

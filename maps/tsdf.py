@@ -471,6 +471,24 @@ def block_stats(geometry: MapGeometry, data: BlockData, bytes_per_block: int) ->
     )
 
 
+def map_stats(tsdf: TsdfMap, bytes_per_block: int) -> MapStats:
+    """block_stats of a map on the device, its voxels read CHUNK_BLOCKS blocks at a time
+    (a city's voxels are never copied to the host whole)."""
+    coords, voxels = [np.zeros((0, 3), np.int32)], np.zeros(3, np.int64)
+    no_free = np.zeros((0, 3), np.int32)
+    for c, d, w in tsdf.block_chunks():
+        part = block_stats(tsdf.geometry, BlockData(c, d, w, no_free), bytes_per_block)
+        coords.append(c)
+        voxels += (part.observed_voxels, part.free_voxels, part.surface_voxels)
+    cells, values = tsdf.coarse_cells()
+    empty = np.zeros((0, BLOCK, BLOCK, BLOCK), np.float32)
+    whole = block_stats(tsdf.geometry, BlockData(np.concatenate(coords), empty, empty,
+                                                 cells[values == FREE]), bytes_per_block)
+    return dataclasses.replace(whole, observed_voxels=whole.observed_voxels + int(voxels[0]),
+                               free_voxels=whole.free_voxels + int(voxels[1]),
+                               surface_voxels=int(voxels[2]))
+
+
 def surface_points(geometry: MapGeometry, data: BlockData, min_weight: float = 1e-6
                    ) -> np.ndarray:
     """Centres of observed voxels within half a voxel diagonal of the zero level set."""

@@ -30,8 +30,8 @@ from mcl3d.maps.tsdf import (
     MapGeometry,
     MapStats,
     TsdfMap,
-    block_stats,
     loaded_bytes_per_block,
+    map_stats,
 )
 
 LOG_SUFFIXES = (".mcap", ".bag", ".db3", ".pcap")
@@ -352,9 +352,9 @@ def _write(req: BuildMapRequest, built: _Built, kind: str, seconds: float) -> Bu
     build_info = {"config": req.config.model_dump(), "f16": req.f16}  # inputs, no clock
     header = map_file.save_map(req.output, tsdf, source=built.source_info, build=build_info,
                                f16=req.f16)
-    data = tsdf.blocks()
-    stats = block_stats(tsdf.geometry, data, loaded_bytes_per_block(req.f16))
+    stats = map_stats(tsdf, loaded_bytes_per_block(req.f16))
     stats = dataclasses.replace(stats, file_bytes=req.output.stat().st_size)
+    data = tsdf.blocks() if req.export_mesh or req.export_points else None
     exports = MapExports(
         mesh_triangles=(export.write_mesh(req.export_mesh, tsdf.geometry, data)
                         if req.export_mesh else None),

@@ -1,5 +1,5 @@
-"""Point-cloud maps: pools sized from the points' cells, grown and retried when short, and
-slab-by-slab fusion giving the same map as one pass."""
+"""Point-cloud maps: pools sized from the cells the points' bands reach, grown and retried
+when short, and slab-by-slab fusion giving the same map as one pass."""
 
 import numpy as np
 import pytest
@@ -19,13 +19,12 @@ def samples():
     return world.seen_from_inside(pts), np.array([T[:3, 3] for T in world.POSES])
 
 
-def test_cube_cells_are_the_blocks_the_fusion_allocates(ti_runtime, samples):
+def test_band_cells_are_the_blocks_the_fusion_allocates(ti_runtime, samples, monkeypatch):
     pts, viewpoints = samples
-    cfg = BuildConfig(voxel_size_m=0.1)
-    tsdf = build.build_from_points(pts, cfg, viewpoints=viewpoints)
-    radius = int(np.ceil(cfg.trunc_m / cfg.voxel_size_m))
-    cells = build._cube_cells(tsdf.geometry, pts, radius)
-    np.testing.assert_array_equal(cells, tsdf.blocks().sorted().coords)
+    band_cells, seen = build.band_cells, []
+    monkeypatch.setattr(build, "band_cells", lambda *a: seen.append(band_cells(*a)) or seen[-1])
+    tsdf = build.build_from_points(pts, BuildConfig(voxel_size_m=0.1), viewpoints=viewpoints)
+    np.testing.assert_array_equal(seen[0], tsdf.blocks().sorted().coords)
 
 
 def test_short_pools_grow_and_the_map_is_the_same(ti_runtime, samples, monkeypatch):
@@ -34,8 +33,8 @@ def test_short_pools_grow_and_the_map_is_the_same(ti_runtime, samples, monkeypat
     pts, viewpoints = samples
     cfg = BuildConfig(voxel_size_m=0.1, capacity_blocks=1)
     want = build.build_from_points(pts, cfg, viewpoints=viewpoints).blocks().sorted()
-    cube_cells = build._cube_cells
-    monkeypatch.setattr(build, "_cube_cells", lambda *a: cube_cells(*a)[::3])
+    band_cells = build.band_cells
+    monkeypatch.setattr(build, "band_cells", lambda *a: band_cells(*a)[::3])
     monkeypatch.setattr(build_module, "MIN_BUILD_TILES", 1)
     got = build.build_from_points(pts, cfg, viewpoints=viewpoints).blocks().sorted()
     for field in ("coords", "sdf", "weight", "free_coords"):
