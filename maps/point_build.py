@@ -35,6 +35,7 @@ READ_ONLY_BLOCKS_PER_BUILD_BLOCK = 3  # a read-only block is 8 bytes a voxel, a 
 SLAB_POOL_MARGIN = 1.3  # a slab's pool: its blocks plus 30 % for the columns beside it
 RUN_LENGTH = 32  # points (in Morton order) one fusion thread takes at a time
 FOOTPRINT_GAPS = 2.0  # a band patch spans this many mean spacings: scan lines leave gaps
+FREE_CHUNK_CELLS = 1 << 18  # candidate free cells tested at once (8 neighbours each)
 
 
 def build_from_points(points: np.ndarray, config: BuildConfig, *,
@@ -267,9 +268,12 @@ def _mark_free_around_points(tsdf: TsdfMap, pts: np.ndarray, nrm: np.ndarray,
     if not len(cells):
         return
     g = tsdf.geometry
-    centers = np.asarray(g.origin_m) + (cells + 0.5) * g.block_size_m
-    dist, idx = cKDTree(pts).query(centers, k=8, workers=-1)
-    side = np.einsum("ckj,ckj->ck", centers[:, None, :] - pts[idx], nrm[idx])
-    clear = dist[:, 0] >= config.trunc_m + 0.5 * np.sqrt(3) * g.block_size_m
-    outside = (side > 0).sum(axis=1) >= 6
-    tsdf.mark_free(cells[clear & outside])
+    tree = cKDTree(pts)
+    free = np.zeros(len(cells), bool)
+    for s in range(0, len(cells), FREE_CHUNK_CELLS):  # a city's temporaries: chunk by chunk
+        centers = np.asarray(g.origin_m) + (cells[s:s + FREE_CHUNK_CELLS] + 0.5) * g.block_size_m
+        dist, idx = tree.query(centers, k=8, workers=-1)
+        side = np.einsum("ckj,ckj->ck", centers[:, None, :] - pts[idx], nrm[idx])
+        clear = dist[:, 0] >= config.trunc_m + 0.5 * np.sqrt(3) * g.block_size_m
+        free[s:s + FREE_CHUNK_CELLS] = clear & ((side > 0).sum(axis=1) >= 6)
+    tsdf.mark_free(cells[free])
