@@ -12,12 +12,10 @@ import taichi as ti
 
 from mcl3d.kernels.tsdf_band import (
     allocate_patch,
-    band_patch,
     band_samples,
-    column_into_slots,
     flush_slots,
     max_band_samples,
-    tangent_basis,
+    point_band,
 )
 from mcl3d.kernels.tsdf_lookup import UNKNOWN, ivec3, vec3
 from mcl3d.kernels.voxel_normals import k_nearest, plane_normal
@@ -78,10 +76,6 @@ def points_fuse_band(m: ti.template(), pts: ti.types.ndarray(dtype=vec3, ndim=1)
         cb = ivec3(-(1 << 30))
         bid = UNKNOWN
         for i in range(run * run_length, ti.min(n, (run + 1) * run_length)):
-            if steps[i] > 0:
-                e1, e2 = tangent_basis(nrm[i])
-                band_patch(m, pts[i], nrm[i], steps[i], behind_m, k_w, e1, e2)
-            else:
-                column_into_slots(m, pts[i], nrm[i], behind_m, k_w, n_s, slot_g, slot_wd,
-                                  slot_w, cb, bid)
+            point_band(m, pts[i], nrm[i], steps[i], behind_m, k_w, n_s, slot_g, slot_wd,
+                       slot_w, cb, bid)
         flush_slots(m, slot_g, slot_wd, slot_w)

@@ -231,6 +231,19 @@ def band_patch(m: ti.template(), p: vec3, nr: vec3, k: ti.i32, behind_m: ti.f32,
                             add_sums(m, bid, g, w * d, w)
 
 
+@ti.func
+def point_band(m: ti.template(), p: vec3, nr: vec3, k: ti.i32, behind_m: ti.f32, k_w: ti.f32,
+               n_s: ti.i32, slot_g: ti.template(), slot_wd: ti.template(),
+               slot_w: ti.template(), cb: ti.template(), bid: ti.template()):
+    """A point's band of half-width k: a patch straight into the map, or a one-column band
+    into the run's slots (column_into_slots), flushed by the caller at the run's end."""
+    if k > 0:
+        e1, e2 = tangent_basis(nr)
+        band_patch(m, p, nr, k, behind_m, k_w, e1, e2)
+    else:
+        column_into_slots(m, p, nr, behind_m, k_w, n_s, slot_g, slot_wd, slot_w, cb, bid)
+
+
 # --------------------------------------------------- one-column bands of a run of points
 @ti.func
 def column_into_slots(m: ti.template(), p: vec3, nr: vec3, behind_m: ti.f32, k_w: ti.f32,

@@ -10,13 +10,11 @@ from mcl3d.kernels.se3 import quat_conj, quat_exp, quat_log, quat_mul, quat_norm
 from mcl3d.kernels.spread import spread_item, spread_length
 from mcl3d.kernels.tsdf_band import (
     allocate_patch,
-    band_patch,
     band_samples,
-    column_into_slots,
     flush_slots,
     footprint_steps,
     max_band_samples,
-    tangent_basis,
+    point_band,
 )
 from mcl3d.kernels.tsdf_blocks import clear_sums
 from mcl3d.kernels.tsdf_carve import carve_in_front, claim_carve_tiles, dense_range
@@ -188,13 +186,8 @@ def fuse_run(m: ti.template(), ray_p: ti.template(), ray_n: ti.template(),
             u = (p - o) / ti.max(r, 1e-9)
             if ti.static(carve):
                 carve_in_front(m, i, o, u, r, c, s_dense)
-            k = footprint_steps(m, r, spacing_rad)
-            if k > 0:
-                e1, e2 = tangent_basis(nr)
-                band_patch(m, p, nr, k, behind_m, k_w, e1, e2)
-            else:
-                column_into_slots(m, p, nr, behind_m, k_w, n_s, slot_g, slot_wd, slot_w, cb,
-                                  bid)
+            point_band(m, p, nr, footprint_steps(m, r, spacing_rad), behind_m, k_w, n_s,
+                       slot_g, slot_wd, slot_w, cb, bid)
     flush_slots(m, slot_g, slot_wd, slot_w)
 
 
