@@ -39,6 +39,11 @@ def unpack_poses(rows: np.ndarray) -> np.ndarray:
     return se3(quat_to_rot(q), rows[:, :3].astype(np.float64))
 
 
+def prior_information(covariance: np.ndarray) -> np.ndarray:
+    """The prediction's covariance as the Gauss-Newton steps' prior: its inverse, f32."""
+    return np.linalg.inv(covariance + COVARIANCE_JITTER * np.eye(6)).astype(np.float32)
+
+
 class SlamParticles:
     """N particles x up to `max_keyframes` keyframes, scored by `gicp` (a BatchGicp over the
     keyframe voxel maps, sized for 3 N groups)."""
@@ -189,10 +194,9 @@ class SlamParticles:
         """One Gauss-Newton step of every particle without a loop toward its own neighbour
         keyframes, from the terms `weigh` linearized, with the prediction's `covariance` as
         the prior; returns how many moved."""
-        info = np.linalg.inv(covariance + COVARIANCE_JITTER * np.eye(6)).astype(np.float32)
         best = self.gicp.poses.best
         return int(slam_kernels.refine(self.n, self.nb, self.nb_loop, best.H, best.b,
-                                       best.n, cfg.min_inliers, info,
+                                       best.n, cfg.min_inliers, prior_information(covariance),
                                        np.deg2rad(cfg.max_step_deg), cfg.max_step_m,
                                        self.q_cur, self.t_cur))
 
@@ -208,9 +212,9 @@ class SlamParticles:
         collapses there and stops covering the truth. `refined` / `corrected`: whether
         `refine` / `correct` ran on this scan. Returns how many particles drew."""
         best = self.gicp.poses.best
-        info = np.linalg.inv(covariance + COVARIANCE_JITTER * np.eye(6)).astype(np.float32)
         return int(slam_posterior.draw_posterior(
-            self.n, self.nb, self.nb_loop, best.H, best.n, self.corrected, info,
+            self.n, self.nb, self.nb_loop, best.H, best.n, self.corrected,
+            prior_information(covariance),
             points_weight / num_src, min_inliers, int(refined), int(corrected), self.seed,
             step, self.q_cur, self.t_cur))
 
