@@ -38,6 +38,14 @@ Runs are ordered by particle count, smallest first, so the expensive counts come
 `--preset NAME` runs every localization with the named settings of `mcl3d localize --preset`
 (mcl3d/localization/presets.py; `paper`: the MCL paper's model, initialization, resampling
 and estimate) instead of the defaults; runs, table rows and run folders carry the name.
+
+The paper's own setting: `--map-source log` localizes in a map built by `mcl3d build-map`
+from another log of the world (not from the mesh; `odometry-log`: at its odometry's
+poses), `--sensor os0-64` simulates the arena's lidar, and `--sigma S` makes the odometry
+ground truth plus white noise of S on velocity and angular velocity, as the paper's sweep
+(0.1 in its arena):
+
+    python bench/study_global.py --worlds arena --sensor os0-64 --sigma 0.1 --preset paper
 """
 
 from __future__ import annotations
@@ -54,6 +62,7 @@ import numpy as np
 
 TOL_M, TOL_DEG = 0.2, 3.0
 WORLDS = {"office": "ground", "arena": "drone"}
+MAPPING_ROUTES = {"office": ("survey", 325.0), "arena": ("loop", 140.0)}  # once round, s
 
 
 def mcl3d(*args) -> None:
@@ -61,17 +70,70 @@ def mcl3d(*args) -> None:
                    stdout=subprocess.DEVNULL)
 
 
-def make_data(work: Path, world: str, seed: int, duration_s: float) -> tuple[Path, Path, Path]:
+def log_config(work: Path, sigma: float | None) -> list:
+    """`--config` of a simulated log whose odometry is the MCL paper's: ground truth plus
+    white noise of sigma on the velocity and angular velocity (m/s, rad/s), nothing else."""
+    if sigma is None:
+        return []
+    cfg = work / f"odometry_sigma_{sigma:g}.yaml"
+    cfg.write_text(f"odometry:\n  trans_noise: 0\n  rot_noise_per_m: 0\n"
+                   f"  rot_noise_per_rad: 0\n  scale_error_sigma: 0\n  turn_bias_sigma: 0\n"
+                   f"  velocity_noise: [{sigma}, {sigma}]\n")
+    return ["--config", cfg]
+
+
+def variant_tag(args) -> str:
+    """Names a log/run by what differs from the study's original setting."""
+    tag = "" if args.sensor is None else f"_{args.sensor}"
+    return tag if args.sigma is None else f"{tag}_sigma{args.sigma:g}"
+
+
+def make_data(work: Path, world: str, seed: int, args) -> tuple[Path, Path, Path]:
     """The seed's log and map (cached: simulated and built once)."""
-    log = work / f"{world}_{seed}.mcap"
-    mesh = work / f"{world}_{seed}.ply"
-    tsdf = work / f"{world}_{seed}.tsdf"
+    name = f"{world}_{seed}{variant_tag(args)}"
+    log, mesh = work / f"{name}.mcap", work / f"{world}_{seed}.ply"
+    sensor = [] if args.sensor is None else ["--sensor", args.sensor]
     if not log.exists():
         mcl3d("simulate", world, "-o", log, "--trajectory", WORLDS[world], "--duration",
-              duration_s, "--seed", seed, "--export-mesh", mesh, "--force")
-    if not tsdf.exists():
-        mcl3d("build-map", mesh, "-o", tsdf, "--backend", "cpu", "--force")
-    return log, tsdf, work / f"{world}_{seed}_gt.tum"
+              args.duration, "--seed", seed, "--export-mesh", mesh, *sensor,
+              *log_config(work, args.sigma), "--force")
+    if args.map_source == "mesh":
+        tsdf = work / f"{world}_{seed}.tsdf"
+        if not tsdf.exists():
+            mcl3d("build-map", mesh, "-o", tsdf, "--backend", "cpu", "--force")
+    else:
+        tsdf = map_from_log(work, world, seed, args)
+    return log, tsdf, work / f"{name}_gt.tum"
+
+
+def map_from_log(work: Path, world: str, seed: int, args) -> Path:
+    """A map from a log: `mcl3d build-map` over another log of the same world (once round a
+    route that sees every room, with its own seed, so other noise: the paper, too, mapped
+    with other trajectories than it localized on), at the log's true poses (`log`, what
+    build-map does by default) or at the poses of `mcl3d odometry` on it, anchored at its
+    first true pose so the map shares the world's frame (`odometry-log`: a robot's map)."""
+    from mcl3d.io.trajectory import Trajectory, read_tum, write_tum
+
+    sensor_tag = "" if args.sensor is None else f"_{args.sensor}"
+    name = f"{world}_{seed}_maplog{sensor_tag}"
+    tsdf = work / f"{name}_{args.map_source}.tsdf"
+    if tsdf.exists():
+        return tsdf
+    log = work / f"{name}.mcap"
+    sensor = [] if args.sensor is None else ["--sensor", args.sensor]
+    route, duration_s = MAPPING_ROUTES[world]
+    if not log.exists():
+        mcl3d("simulate", world, "-o", log, "--trajectory", route, "--duration", duration_s,
+              "--seed", seed + 1000, *sensor, "--force")
+    poses = []
+    if args.map_source == "odometry-log":
+        mcl3d("odometry", log, "-o", work / f"{name}_odometry", "--backend", "cpu", "--force")
+        odo = read_tum(work / f"{name}_odometry" / "odometry.tum")
+        T_map_first = read_tum(work / f"{name}_gt.tum").interpolate_poses(odo.stamps_s[:1])[0]
+        poses = ["--trajectory", work / f"{name}_odometry_poses.tum"]
+        write_tum(poses[1], Trajectory(odo.stamps_s, T_map_first @ odo.poses))
+    mcl3d("build-map", log, "-o", tsdf, *poses, "--backend", "cpu", "--force")
+    return tsdf
 
 
 KIDNAP_STD = [0.05, 0.05, 0.02, *np.degrees([0.01, 0.01, 0.02]).tolist()]  # test's spread (m, deg)
@@ -246,17 +308,27 @@ def localize_once(log: Path, tsdf: Path, out: Path, n: int, seed: int, args) -> 
             "ms_per_update": round(summary["ms_per_update"]["total"], 1)}
 
 
+def setting(run: dict) -> str:
+    """The map, the lidar and the odometry of a run (older JSON: mesh, VLP-16, simulated
+    wheel odometry)."""
+    sigma = run.get("odometry_sigma")
+    odometry = "wheel odometry" if sigma is None else f"truth + sigma {sigma:g}"
+    return f"{run.get('map', 'mesh')} map, {run.get('sensor', 'vlp16')}, {odometry}"
+
+
 def summarize(runs: list[dict], worlds, particles) -> list[dict]:
     rows = []
     presets = sorted({r.get("preset", "default") for r in runs})
-    for preset, world, n in ((p, w, n) for p in presets for w in worlds for n in particles):
+    settings = sorted({setting(r) for r in runs})
+    for preset, sett, world, n in ((p, s, w, n) for p in presets for s in settings
+                                   for w in worlds for n in particles):
         rs = [r for r in runs if r["world"] == world and r["particles"] == n
-              and r.get("preset", "default") == preset]
+              and r.get("preset", "default") == preset and setting(r) == sett]
         if not rs:
             continue
         ok = [r for r in rs if r["success"]]
         rows.append({
-            "preset": preset, "world": world, "particles": n, "runs": len(rs),
+            "preset": preset, "setting": sett, "world": world, "particles": n, "runs": len(rs),
             "success_rate": len(ok) / len(rs),
             "median_scans_to_converge": float(np.median([r["scans_to_converge"]
                                                          for r in ok])) if ok else None,
@@ -273,11 +345,12 @@ def print_table(rows: list[dict]) -> None:
     from rich.table import Table
 
     table = Table(title="Global localization: success = last scans within 0.2 m and 3 deg")
-    for col in ("preset", "world", "particles", "runs", "success", "scans to converge (median)",
-                "RMSE from then (median)", "RMSE once filter converged", "ms/update (median)"):
+    for col in ("preset", "setting", "world", "particles", "runs", "success",
+                "scans to converge (median)", "RMSE from then (median)",
+                "RMSE once filter converged", "ms/update (median)"):
         table.add_column(col, justify="right")
     for r in rows:
-        table.add_row(r.get("preset", "default"), r["world"], f"{r['particles']:,}",
+        table.add_row(r.get("preset", "default"), r["setting"], r["world"], f"{r['particles']:,}",
                       str(r["runs"]),
                       f"{100 * r['success_rate']:.0f} %",
                       "-" if r["median_scans_to_converge"] is None
@@ -313,6 +386,14 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="seeds 1 2, N = 10k and 30k")
     ap.add_argument("--preset", default="default",
                     help="named localize settings (mcl3d/localization/presets.py)")
+    ap.add_argument("--map-source", choices=("mesh", "log", "odometry-log"), default="mesh",
+                    help="the map from the world mesh, or built by `mcl3d build-map` from "
+                    "another log of the world at its true poses or its odometry's")
+    ap.add_argument("--sensor", help="simulated lidar (default: vlp16), e.g. os0-64 as the "
+                    "paper's arena")
+    ap.add_argument("--sigma", type=float,
+                    help="odometry = ground truth + white noise of this sigma on velocity "
+                    "and angular velocity (m/s, rad/s), as the paper's sweep")
     ap.add_argument("--report", type=Path, nargs="+",
                     help="only print the table of these JSON files' runs (merged)")
     ap.add_argument("--kidnap", type=int, nargs="+", metavar="SEED",
@@ -354,13 +435,17 @@ def main() -> None:
     for n in sorted(args.particles):
         for world in args.worlds:
             for seed in args.seeds:
-                log, tsdf, gt = make_data(args.work, world, seed, args.duration)
+                log, tsdf, gt = make_data(args.work, world, seed, args)
                 cache.current = tsdf
                 suffix = "" if args.preset == "default" else f"_{args.preset}"
-                out = args.work / f"{world}_{seed}_{n}{suffix}"
+                if args.map_source != "mesh":
+                    suffix += f"_{args.map_source}"
+                out = args.work / f"{world}_{seed}{variant_tag(args)}_{n}{suffix}"
                 timing = localize_once(log, tsdf, out, n, seed, args)
                 d, a = scan_errors(out, gt)
                 run = {"preset": args.preset, "world": world, "seed": seed, "particles": n,
+                       "map": args.map_source, "sensor": args.sensor or "vlp16",
+                       "odometry_sigma": args.sigma,
                        "scans": len(d),
                        **timing, **evaluate_run(d, a, args.tail),
                        "rmse_after_filter_converged_m": tracking_rmse(

@@ -133,8 +133,9 @@ def simulate(
                          "paper-forest, else vlp16).", show_default=False)] = None,
     trajectory: Annotated[str, typer.Option(
         "--trajectory", help="ground, loop, handheld, drone (forest, arena), elevator "
-                             "(building), kidnap, paper-forest (forest) or paper-elevator "
-                             "(building).")] = "ground",
+                             "(building), kidnap, survey (office: every room, once round in "
+                             "~325 s), paper-forest (forest) or paper-elevator (building).")
+    ] = "ground",
     duration: Annotated[float | None, typer.Option(
         "--duration", help="Seconds to simulate (default: the route's own length for "
                            "paper-forest and paper-elevator, else 10).",

@@ -25,10 +25,10 @@ from mcl3d.core.geometry import se3, se3_inverse
 from mcl3d.sim.spline import QuinticHermite, catmull_rom_rates, knot_accelerations
 from mcl3d.sim.worlds import World
 
-TRAJECTORIES = ("ground", "loop", "handheld", "drone", "elevator", "kidnap", "paper-forest",
-                "paper-elevator")
+TRAJECTORIES = ("ground", "loop", "handheld", "drone", "elevator", "kidnap", "survey",
+                "paper-forest", "paper-elevator")
 VALID = {
-    "office": ("ground", "loop", "handheld", "kidnap"),
+    "office": ("ground", "loop", "handheld", "kidnap", "survey"),
     "building": ("ground", "loop", "handheld", "elevator", "kidnap", "paper-elevator"),
     "forest": ("ground", "loop", "handheld", "drone", "kidnap", "paper-forest"),
     "arena": ("ground", "loop", "handheld", "drone", "kidnap"),
@@ -509,7 +509,7 @@ def build_trajectory(world: World, kind: str, duration_s: float, seed: int = 0) 
         return _paper_forest(world, duration_s, rng)
     if kind == "paper-elevator":
         return _paper_elevator(world, duration_s, rng)
-    rig = {"loop": "ground", "kidnap": "ground"}.get(kind, kind)
+    rig = {"loop": "ground", "kidnap": "ground", "survey": "ground"}.get(kind, kind)
     route = world.routes[world.kidnap_route if kind == "kidnap" else kind]
     level = len(world.floor_z_m) - 1 if kind == "kidnap" else 0
     z_ref = world.floor_z_m[level]

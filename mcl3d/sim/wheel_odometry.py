@@ -2,7 +2,9 @@
 
 Each increment between two samples is corrupted by a per-run scale error and turn bias
 (systematic: wheel radius, track width) and by white noise whose variance grows with the
-distance and angle travelled (so the drift is independent of the rate). The reported pose
+distance and angle travelled (so the drift is independent of the rate), optionally plus
+white noise on the velocities themselves (the MCL paper's sweep: its odometry is ground
+truth with noise of sigma on the velocity and angular velocity). The reported pose
 covariance is propagated through the same increments. Odometry sees neither a kidnap nor
 the elevator cab's motion (it measures motion relative to the floor it stands on).
 """
@@ -30,6 +32,9 @@ class WheelOdometryConfig(Section):
                                    description="sigma of the per-run yaw bias per metre (rad/m)")
     twist_noise: tuple[float, float] = Field((0.02, 0.01),
                                              description="reported twist noise sigma (m/s, rad/s)")
+    velocity_noise: tuple[float, float] = Field(
+        (0.0, 0.0), description="white noise sigma on the integrated velocity and angular "
+        "velocity (m/s, rad/s): the MCL paper's odometry, ground truth plus noise of sigma")
 
 
 def adjoint(T: np.ndarray) -> np.ndarray:
@@ -48,7 +53,7 @@ class WheelOdometrySimulator:
         self.traj, self.cfg, self.rng = traj, cfg, rng
         self.scale = 1.0 + cfg.scale_error_sigma * rng.standard_normal()
         self.turn_bias = cfg.turn_bias_sigma * rng.standard_normal()
-        self._T_true = None
+        self._T_true, self._t_prev = None, 0.0
         self._T_est = np.eye(4)
         self._cov = np.zeros((6, 6))  # rotation-first, right-perturbation (body frame)
 
@@ -65,8 +70,8 @@ class WheelOdometrySimulator:
         poses, covs = np.empty((len(t_s), 4, 4)), np.empty((len(t_s), 6, 6))
         for i, T_true in enumerate(truth):
             if self._T_true is not None:
-                self._step(se3_inverse(self._T_true) @ T_true)
-            self._T_true = T_true
+                self._step(se3_inverse(self._T_true) @ T_true, float(t_s[i]) - self._t_prev)
+            self._T_true, self._t_prev = T_true, float(t_s[i])
             poses[i] = self._T_est
             R = self._T_est[:3, :3]
             J = np.zeros((6, 6))  # body rot-first -> ROS odom-frame (x y z rx ry rz)
@@ -77,7 +82,7 @@ class WheelOdometrySimulator:
         twist[:, 3:] += cfg.twist_noise[1] * self.rng.standard_normal((len(t_s), 3))
         return poses, twist, covs
 
-    def _step(self, delta: np.ndarray) -> None:
+    def _step(self, delta: np.ndarray, dt_s: float) -> None:
         cfg = self.cfg
         xi = se3_log(delta)
         dist, angle = float(np.linalg.norm(xi[3:])), float(np.linalg.norm(xi[:3]))
@@ -86,6 +91,8 @@ class WheelOdometrySimulator:
         xi_meas[2] += self.turn_bias * dist
         var_rot = cfg.rot_noise_per_m ** 2 * dist + cfg.rot_noise_per_rad ** 2 * angle
         var_trans = cfg.trans_noise ** 2 * dist
+        var_rot += (cfg.velocity_noise[1] * dt_s) ** 2
+        var_trans += (cfg.velocity_noise[0] * dt_s) ** 2
         Q = np.diag([var_rot] * 3 + [var_trans] * 3)
         noise = np.sqrt(np.diag(Q)) * self.rng.standard_normal(6)
         step = se3_exp(xi_meas) @ se3_exp(noise)

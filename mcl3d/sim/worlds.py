@@ -194,10 +194,11 @@ def office(seed: int = 0, n_rooms: int = 8, room_width_m: float = 6.0,
             (length - 5.75, 12.5), (length - 5.75, 17.0), (3.0, 17.0), (5.75, 12.0),
             (5.75, yc)]
     kidnap = [(2.0, yc), *room_visit(0), *room_visit(1), *room_visit(2), (20.5, yc)]
+    survey = [(2.0, yc), *[p for i in range(n_rooms) for p in room_visit(i)], *loop[15:]]
     return World(
         name="office", seed=seed, static=b.build(), ground=g.build(),
         routes={"ground": np.array(ground), "loop": np.array(loop), "kidnap": np.array(kidnap),
-                "handheld": np.array(loop)},
+                "handheld": np.array(loop), "survey": np.array(survey)},
         floor_z_m=[0.0], T_kidnap=se3(np.eye(3), [4 * room_width_m, 0.0, 0.0]),
         kidnap_route="kidnap",
         info={"size": f"{length:.0f} x {width:.0f} m", "rooms": str(n_rooms)},

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from mcl3d.core.errors import ConfigError
-from mcl3d.core.geometry import rotation_angle, se3_inverse, so3_exp, so3_log
+from mcl3d.core.geometry import rotation_angle, se3_inverse, se3_log, so3_exp, so3_log
 from mcl3d.sim.imu import ImuConfig, ImuSimulator, true_imu
 from mcl3d.sim.pipeline import extrinsics
 from mcl3d.sim.spline import QuinticHermite, catmull_rom_rates
@@ -212,3 +212,29 @@ def test_odometry_is_exact_without_noise_and_drifts_consistently_with_its_covari
                                 poses[-1][:3, :3] @ so3_log(err[:3, :3])])
         nees.append(e_ros @ np.linalg.solve(covs[-1] + 1e-12 * np.eye(6), e_ros))
     assert 2.0 < np.mean(nees) < 12.0  # chi-square with 6 dof: mean 6
+
+
+def test_velocity_noise_corrupts_each_increment_by_sigma_times_the_interval():
+    traj = build_trajectory(world("office"), "ground", 20.0)
+    t = np.arange(0, 20 * 50) / 50.0
+    sigma_v, sigma_w = 0.1, 0.05
+    cfg = WheelOdometryConfig(trans_noise=0, rot_noise_per_m=0, rot_noise_per_rad=0,
+                              scale_error_sigma=0, turn_bias_sigma=0,
+                              velocity_noise=(sigma_v, sigma_w))
+    poses, _, _ = WheelOdometrySimulator(traj, cfg, np.random.default_rng(3)).measure(t)
+    truth = traj.T_odom_base(t)
+    err = [se3_log(se3_inverse(se3_inverse(truth[i]) @ truth[i + 1])
+                   @ se3_inverse(poses[i]) @ poses[i + 1]) for i in range(len(t) - 1)]
+    err = np.array(err)
+    assert np.std(err[:, 3:]) == pytest.approx(sigma_v / 50, rel=0.1)
+    assert np.std(err[:, :3]) == pytest.approx(sigma_w / 50, rel=0.1)
+
+
+def test_office_survey_enters_every_room_and_the_open_area_once_round():
+    office = world("office")
+    xy = build_trajectory(office, "survey", 325.0).T_map_base(np.arange(0.0, 325.0, 0.5))[:, :2, 3]
+    in_rooms = xy[xy[:, 1] < 7.0]
+    rooms_entered = set(((in_rooms[:, 0] - 1.0) // 6.0).astype(int))
+    assert rooms_entered == set(range(8))
+    assert (xy[:, 1] > 16.0).any()  # the open area beyond the ramps
+    assert np.linalg.norm(xy[-1] - xy[0]) < 3.0  # back at the start
