@@ -11,16 +11,17 @@ points as it needs: the finest where its own cell holds at least `min_own`, so a
 near-range surface is searched in 5 cm cells and a sparse far one in 80 cm or 3.2 m cells.
 There it keeps the k nearest in the 3x3x3 cells around its own (scan_grid.keep_nearest:
 ties keep the earlier in sorted order), the point included. The normal is the smallest
-eigenvector of their scatter (at least MIN_NEIGHBORS, not a line), facing the sensor (the
-origin of the scan's frame); zeros otherwise, which the fusion kernels read as "use the
-ray" (projective distance), as for the range-image normals (scan_normals.py).
+eigenvector of their scatter (at least MIN_NEIGHBORS; along a line, the direction across
+it as scan_normals.across_line), facing the sensor (the origin of the scan's frame); zeros
+with fewer neighbours, which the fusion kernels read as "use the ray" (projective
+distance), as for the range-image normals (scan_normals.py).
 """
 
 import taichi as ti
 
 from mcl3d.kernels.covariance import smallest_eigenvector
 from mcl3d.kernels.scan_grid import MAX_K, keep_nearest, neighbour_scatter
-from mcl3d.kernels.scan_normals import MIN_NEIGHBORS, line_only
+from mcl3d.kernels.scan_normals import MIN_NEIGHBORS, across_line, line_only
 
 vec3 = ti.math.vec3
 ivec3 = ti.math.ivec3
@@ -120,11 +121,16 @@ def k_nearest(pts: ti.template(), cells: ti.template(), i: ti.i32, keys: ti.temp
 @ti.func
 def plane_normal(pts: ti.template(), nbr: ti.template(), found: ti.i32, p: vec3) -> vec3:
     """The smallest eigenvector of the neighbours' scatter, facing the origin; zeros with
-    fewer than MIN_NEIGHBORS or along a line."""
+    fewer than MIN_NEIGHBORS. Neighbours along a line (one ring's arc: the k nearest of a
+    sparse scan's ground all lie on it, the next ring being metres away) take the direction
+    across it that the range-image normals take (scan_normals.across_line: the vertical for
+    a level arc, the ray for a steep line); with zeros the ground fused along its grazing
+    rays, and bench_km_map's map tracked worse (docs/map-fusion.md)."""
     normal = vec3(0.0)
     if found >= MIN_NEIGHBORS:
         S = neighbour_scatter(pts, nbr, found, p)
         nrm = smallest_eigenvector(S)
-        if not line_only(S, nrm):
-            normal = -nrm if nrm.dot(p) > 0.0 else nrm
+        if line_only(S, nrm):
+            nrm = across_line(S, p)
+        normal = -nrm if nrm.dot(p) > 0.0 else nrm
     return normal

@@ -4,8 +4,10 @@ cells; the device finds each point's k nearest in the cells around it and fits a
 
 Replaces the host's k-nearest-neighbour normals (Open3D's kd-tree, maps/normals.py) in
 build-map's `normals: auto` for such scans. Same neighbours where the k nearest lie within
-the searched cells; points on a line (one ring's arc) or with fewer than 5 neighbours get
-no normal (zeros: fused along the ray), where the host would fit a plane to noise.
+the searched cells. Points whose neighbours lie on a line (one ring's arc, as on a sparse
+scan's ground) take the direction across it that the range-image normals take (the vertical
+for a level arc), where the host would fit a plane to noise; points with fewer than 5
+neighbours get no normal (zeros: fused along the ray).
 """
 
 from __future__ import annotations

@@ -310,23 +310,41 @@ def _scan_bounds(req: BuildMapRequest, reader: LogReader, traj: Trajectory) -> _
                 cached.append(cloud)
             else:
                 cached = None
-        pts = np.asarray(cloud.points, dtype=np.float32).reshape(-1, 3)
         T, _, _ = _scan_pose(traj, cloud)
         deskewed = deskewed or _point_times(cloud) is not None
-        r2 = (pts * pts).sum(axis=1)  # f32 and squared: this pass reads every scan
-        pts = pts[(r2 >= cfg.min_range_m**2) & (r2 <= cfg.max_range_m**2)]
         n_scans += 1
-        if len(pts) == 0:
+        bounds = world_bounds(cloud.points, T, cfg.min_range_m, cfg.max_range_m)
+        if bounds is None:
             n_empty += 1
             continue
-        world = pts @ T[:3, :3].T.astype(np.float32) + T[:3, 3].astype(np.float32)
-        lo, hi = np.minimum(lo, world.min(axis=0)), np.maximum(hi, world.max(axis=0))
+        lo, hi = np.minimum(lo, bounds[0]), np.maximum(hi, bounds[1])
     if n_scans == n_empty:
         n_scans += reader.faults.count("scan_empty")
         raise PointCloudError(
             f"{req.source}: none of its {n_scans} scans has points between "
             f"{cfg.min_range_m} and {cfg.max_range_m} m; nothing to build a map from")
     return _LogScans(lo, hi, n_scans, n_empty, deskewed, cached)
+
+
+def world_bounds(points: np.ndarray, T_map_lidar: np.ndarray, min_range_m: float,
+                 max_range_m: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """(lo, hi) in the map frame of a scan's points within range, None when there are none.
+
+    Column by column in f32: this pass reads every scan, and on an (n, 3) array a matrix
+    product and axis-0 reductions take ~10x longer (11 against 1 ms for 65k points)."""
+    pts = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+    x, y, z = pts[:, 0], pts[:, 1], pts[:, 2]
+    r2 = x * x + y * y + z * z
+    ok = (r2 >= np.float32(min_range_m**2)) & (r2 <= np.float32(max_range_m**2))
+    if not ok.any():
+        return None
+    R, t = T_map_lidar[:3, :3].astype(np.float32), T_map_lidar[:3, 3].astype(np.float32)
+    lo, hi = np.empty(3), np.empty(3)
+    for a in range(3):
+        w = R[a, 0] * x + R[a, 1] * y + R[a, 2] * z + t[a]
+        lo[a] = w.min(where=ok, initial=np.inf)
+        hi[a] = w.max(where=ok, initial=-np.inf)
+    return lo, hi
 
 
 def _cloud_bytes(cloud) -> int:

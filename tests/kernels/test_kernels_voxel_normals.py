@@ -23,7 +23,7 @@ def _room_scan(n: int, seed: int, far: float = 1.0):
 
 def _reference(pts: np.ndarray, k: int) -> np.ndarray:
     """The kernel's search in NumPy (float64 scatter, numpy's eigh): level, 27 cells in the
-    kernel's order, the k nearest (ties: the earlier), plane, line test, facing."""
+    kernel's order, the k nearest (ties: the earlier), plane, or across a line, facing."""
     from mcl3d.kernels import scan_normals as sn
     from mcl3d.kernels import voxel_normals as kv
     from mcl3d.maps import voxel_normals as vn
@@ -58,9 +58,11 @@ def _reference(pts: np.ndarray, k: int) -> np.ndarray:
             continue
         q = p_sorted[nbr].astype(np.float64)
         lam, vec = np.linalg.eigh(np.cov(q.T, bias=True))
-        if lam[1] < sn.LINE_RATIO * lam[2]:
-            continue
         normal = vec[:, 0]
+        if lam[1] < sn.LINE_RATIO * lam[2]:  # across the line: vertical if level, else ray
+            t, p = vec[:, 2], p_sorted[i].astype(np.float64)
+            w = np.array([0.0, 0.0, 1.0]) if abs(t[2]) < sn.STEEP_LINE else p / np.linalg.norm(p)
+            normal = (w - (w @ t) * t) / np.linalg.norm(w - (w @ t) * t)
         out[i] = -normal if normal @ p_sorted[i] > 0 else normal
     normals = np.empty_like(out)
     normals[order] = out
@@ -116,3 +118,22 @@ def test_build_map_takes_voxel_normals_for_scans_without_rings(ti_runtime):
     fuser.config = BuildConfig(normals="knn")
     host = fuser.normals(pts, None)
     assert np.median(np.abs(np.einsum("ij,ij->i", host, voxel_normals_of(pts, 12)))) > 0.999
+
+
+def test_voxel_normals_of_sparse_rings_on_the_ground_face_up(ti_runtime):
+    """A VLP-16's rings on flat ground 1.8 m below: the k nearest of a point all lie on its
+    own ring's arc (the next ring is metres away), a line: the normal across it is the
+    vertical (before, such points got none and fused along their grazing rays)."""
+    from mcl3d.maps.voxel_normals import voxel_normals_of
+
+    rng = np.random.default_rng(3)
+    elevation = np.radians(np.arange(-15.0, -1.0, 2.0))  # the rings that reach the ground
+    azimuth = np.radians(np.arange(0.0, 360.0, 0.4))
+    el, az = np.meshgrid(elevation, azimuth, indexing="ij")
+    d = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], -1)
+    d = d.reshape(-1, 3)
+    r = 1.8 / -d[:, 2] + rng.normal(0.0, 0.015, len(d))
+    pts = (d * r[:, None]).astype(np.float32)
+    normals = voxel_normals_of(pts, 12)
+    assert (np.abs(normals).sum(axis=1) > 0).all()
+    assert np.percentile(normals[:, 2], 5) > 0.99

@@ -62,3 +62,24 @@ def test_log_fused_from_the_cache_with_range_image_normals(ti_runtime, vlp16_log
                                                    output=tmp_path / "map.tsdf"))
     assert result.n_scans == 3 and result.stats.blocks > 100
     assert isinstance(fused[0], list) and len(fused[0]) == 3  # no second read of the log
+
+
+def test_pass_one_bounds_are_those_of_the_points_in_range():
+    """world_bounds (column by column) against the plain (n, 3) transform of the points
+    within range; None when no point is in range."""
+    from scipy.spatial.transform import Rotation
+
+    from mcl3d.mapping.pipeline import world_bounds
+
+    rng = np.random.default_rng(4)
+    points = rng.normal(0.0, 20.0, (5000, 3)).astype(np.float32)
+    T = np.eye(4)
+    T[:3, :3] = Rotation.random(random_state=5).as_matrix()
+    T[:3, 3] = [12.0, -3.0, 1.5]
+    r = np.linalg.norm(points, axis=1)
+    inside = points[(r >= 2.0) & (r <= 30.0)].astype(np.float64)
+    world = inside @ T[:3, :3].T + T[:3, 3]
+    lo, hi = world_bounds(points, T, 2.0, 30.0)
+    np.testing.assert_allclose(lo, world.min(axis=0), atol=1e-4)
+    np.testing.assert_allclose(hi, world.max(axis=0), atol=1e-4)
+    assert world_bounds(points * 100.0, T, 2.0, 30.0) is None
