@@ -306,12 +306,15 @@ def mark_fixed(n: ti.i32, travel_now_m: ti.f32, drift_now: vec5, corrected: ti.t
 
 @ti.kernel
 def likelihood(n: ti.i32, num_src: ti.i32, nb: ti.template(), best_e: ti.template(),
-               best_n: ti.template(), outlier_cost: ti.f32, points_weight: ti.f32,
-               frame_ll: ti.template(), log_w: ti.template()):
+               best_n: ti.template(), outlier_cost: ti.f32, seen: ti.template(),
+               seen_cost: ti.f32, points_weight: ti.f32, frame_ll: ti.template(),
+               log_w: ti.template()):
     """Eq. 2-3 and 11, per point: the GICP cost eᵀΩe of a matched point, `outlier_cost`
-    for a point with no voxel; log p = -½ points_weight · mean cost over the neighbour
-    rows, added to the cumulative log weight. A particle without neighbours gets UNSCORED
-    and no weight (the host gives it the typical particle's likelihood)."""
+    for a point with no voxel, plus `seen_cost` for each of the row's `seen` points (points
+    in the keyframe's seen-through space, kernels/slam_free_space.py, already scaled to the
+    scan); log p = -½ points_weight · mean cost over the neighbour rows, added to the
+    cumulative log weight. A particle without neighbours gets UNSCORED and no weight (the
+    host gives it the typical particle's likelihood)."""
     for i in range(n):
         cost = 0.0
         rows = 0
@@ -323,6 +326,7 @@ def likelihood(n: ti.i32, num_src: ti.i32, nb: ti.template(), best_e: ti.templat
                 if matched > 0:
                     cost += 2.0 * best_e[g]
                 cost += outlier_cost * ti.cast(num_src - matched, ti.f32)
+                cost += seen_cost * ti.cast(seen[g], ti.f32)
         if rows > 0:
             ll = -0.5 * points_weight * cost / ti.cast(rows * num_src, ti.f32)
             frame_ll[i] = ll

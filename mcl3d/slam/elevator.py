@@ -87,3 +87,13 @@ def in_elevator(points: np.ndarray, cfg: ElevatorConfig, fov_deg: float = 360.0)
     per_sector = sector_ranges(points, cfg.sectors, cfg.percentile, fov_deg,
                                cfg.min_sector_points)
     return bool(np.all(per_sector < cfg.enclosure_range_m))
+
+
+def open_sectors(points: np.ndarray, cfg: ElevatorConfig, fov_deg: float = 360.0) -> int:
+    """How many of the scan's `cfg.sectors` azimuth sectors are open (their percentile range
+    at or beyond `cfg.enclosure_range_m`, or too few returns): a cab with its doors open
+    leaves one or two, a corridor or a room more."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    per_sector = sector_ranges(points, cfg.sectors, cfg.percentile, fov_deg,
+                               cfg.min_sector_points)
+    return int(np.sum(per_sector >= cfg.enclosure_range_m))

@@ -55,8 +55,9 @@ from mcl3d.registration.preprocess import (
     plane_rows_to_covs,
     voxel_downsample,
 )
-from mcl3d.slam.elevator import ElevatorRide, in_elevator
+from mcl3d.slam.elevator import ElevatorRide, in_elevator, open_sectors
 from mcl3d.slam.frame_store import SlamFrame, SlamFrames
+from mcl3d.slam.free_space import FreeSpace
 from mcl3d.slam.keyframe_store import KeyframeBook, slot_to_reuse
 from mcl3d.slam.slam_config import PredictionNoiseConfig, PruningConfig, SlamConfig
 from mcl3d.slam.slam_particles import DRIFT_SUMS, SlamParticles
@@ -147,6 +148,22 @@ def prune_plan(log_w: np.ndarray, frame_ll: np.ndarray, cfg: PruningConfig,
     return dead_idx, sources, lw
 
 
+def resample_all(log_w: np.ndarray, rng: np.random.Generator
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(dead, sources, new log weights) of a systematic resampling of every particle by
+    weight: a particle drawn c times stays and gives c - 1 copies to particles drawn never
+    (the dead); all weights become equal."""
+    lw = np.asarray(log_w, np.float64)
+    post = np.exp(lw - lw.max())
+    cdf = np.cumsum(post / post.sum())
+    n = len(lw)
+    drawn = np.minimum(np.searchsorted(cdf, (rng.random() + np.arange(n)) / n * cdf[-1]), n - 1)
+    counts = np.bincount(drawn, minlength=n)
+    dead = np.flatnonzero(counts == 0)
+    sources = np.repeat(np.arange(n), np.maximum(counts - 1, 0))
+    return dead, sources, np.zeros(n)
+
+
 def voxel_keys(points: np.ndarray, voxel_m: float) -> np.ndarray:
     """One int64 per point naming its voxel (21 bits per axis)."""
     c = np.floor(points / voxel_m).astype(np.int64) + (1 << 20)
@@ -188,6 +205,10 @@ class MonteCarloSlam:
         self.gicp = BatchGicp(self.maps, max_groups=groups, max_rows=groups,
                               max_source_points=cfg.correction.points)
         self.particles = SlamParticles(cfg.particles, kf.capacity, self.gicp, cfg.seed)
+        lk = cfg.likelihood
+        self.free_space = None if lk.free_space_cost <= 0 else FreeSpace(
+            kf.capacity, lk.free_space_bin_deg, cfg.odometry.min_range_m,
+            cfg.odometry.max_range_m, lk.free_space_points)
         self._keyframes_full = False  # said once when keyframes.capacity is reached
         self.grid = ScanGrid(max_voxels=cfg.odometry.max_points)
         self._scan_pool = SourcePool(cfg.odometry.max_points)  # the downsampled scan
@@ -201,6 +222,7 @@ class MonteCarloSlam:
         self._last_keys = np.zeros(0, np.int64)  # overlap voxels of the last keyframe
         self._ride: ElevatorRide | None = None
         self._ride_applied_m = 0.0
+        self._after_ride = False  # the scans after a ride until the sensor leaves the cab
         self.vertical_offset = np.zeros(3)  # elevator motion the odometry did not see
 
     # ---- one scan ----
@@ -218,7 +240,12 @@ class MonteCarloSlam:
         watch.lap("odometry")
         first = len(self.frames) == 0
         elevator = in_elevator(points, cfg.elevator, cfg.front_end.fov_deg)
+        if elevator and self._ride is None and cfg.elevator.resample_on_entry and not first:
+            self.particles.respawn(*resample_all(self.particles.log_w.to_numpy(),
+                                                 np.random.default_rng([cfg.seed, len(self.frames),
+                                                                        1])))
         lift = self._elevator_shift(elevator, odo, imu, stamp_ns)
+        in_cab = self._leaving_cab(points) or elevator  # (called on every scan)
         down, covs = self._preprocess(points, times, odo, first)
         watch.lap("preprocess")
         step = len(self.frames)
@@ -226,9 +253,9 @@ class MonteCarloSlam:
         T_odom = self._with_offset(odo.T_world_lidar)
         cov = None if first else self._predict(odo, T_odom, lift, step)
         watch.lap("predict")
-        looping, corrected, scored, loops = self._correct_and_weigh(down, covs, elevator, cov,
-                                                                    T_odom, watch)
-        keyframe = not elevator and self._keyframe_due(down, T_odom)
+        looping, corrected, scored, loops = self._correct_and_weigh(down, covs, in_cab, cov,
+                                                                    T_odom, watch, points)
+        keyframe = not in_cab and self._keyframe_due(down, T_odom)
         warnings = list(odo.warnings)
         if keyframe and self.particles.full and not self._keyframes_full:
             warnings.append(f"all {self.particles.max_keyframes} keyframes are used: each new "
@@ -236,7 +263,7 @@ class MonteCarloSlam:
                             "keyframes.capacity to keep more)")
             self._keyframes_full = True
         if keyframe:
-            self._add_keyframe(down, covs, T_odom[:3, 3], loops)
+            self._add_keyframe(down, covs, T_odom[:3, 3], loops, points)
         watch.lap("keyframe")
         pruned, post, origin = self._prune(step, scored)
         watch.lap("prune")
@@ -276,20 +303,24 @@ class MonteCarloSlam:
             self.drift[4] += lift[2] ** 2  # the elevator's random walk
         return cov
 
-    def _correct_and_weigh(self, down: np.ndarray, covs: np.ndarray, elevator: bool,
-                           cov: np.ndarray | None, T_odom: np.ndarray, watch: _Stopwatch
+    def _correct_and_weigh(self, down: np.ndarray, covs: np.ndarray, in_cab: bool,
+                           cov: np.ndarray | None, T_odom: np.ndarray, watch: _Stopwatch,
+                           points: np.ndarray
                            ) -> tuple[int, int, bool, dict[int, tuple[int, ...]]]:
         """Loop correction, likelihood and refinement against each particle's neighbour
         keyframes; returns (particles looping, particles corrected, whether the scan was
         scored, the loop keyframes of each corrected particle). Nothing is scored without
-        keyframes, in the elevator or on a tiny scan."""
+        keyframes, in the elevator's cab or on a tiny scan. `points`: the whole scan
+        (lidar frame), for the free space it saw."""
         cfg, corr = self.cfg, self.cfg.correction
         p = self.particles
         looping = corrected = 0
         loops: dict[int, tuple[int, ...]] = {}
         src_pts, src_covs = thin(down, covs, corr.points)
-        scored = p.num_keyframes > 0 and len(src_pts) >= corr.min_inliers and not elevator
+        scored = p.num_keyframes > 0 and len(src_pts) >= corr.min_inliers and not in_cab
         if scored:
+            if self.free_space is not None:
+                self.free_space.set_scan(points)
             self.gicp.set_source(src_pts, src_covs)
             loop = cfg.loop_closure
             facing_rad = np.deg2rad(cfg.front_end.fov_deg / 2) if loop.facing_gate else np.pi
@@ -303,7 +334,7 @@ class MonteCarloSlam:
                 p.select_neighbours(*gate)
         watch.lap("correct")
         if scored:
-            p.weigh(len(src_pts), cfg.likelihood)
+            p.weigh(len(src_pts), cfg.likelihood, self.free_space)
         watch.lap("weigh")
         if scored and corr.refine_without_loop and cov is not None:
             p.refine(cov, corr)
@@ -323,6 +354,19 @@ class MonteCarloSlam:
         """World up: against the IMU's gravity, else the first scan's +z."""
         g = self.odometry.g_world
         return np.array([0.0, 0.0, 1.0]) if g is None else -g / np.linalg.norm(g)
+
+    def _leaving_cab(self, points: np.ndarray) -> bool:
+        """Whether the scan is still in the cab after a ride (its doors open): until
+        `elevator.exit_open_sectors` sectors are open. A scan of the cab matches the cab
+        wherever a keyframe saw it, on any floor, and where a keyframe saw the shaft empty
+        the cab contradicts the right floor's map: such scans do not decide the floor."""
+        if self._ride is not None or not self._after_ride:
+            self._after_ride = self._ride is not None
+            return False
+        ecfg = self.cfg.elevator
+        self._after_ride = open_sectors(points, ecfg, self.cfg.front_end.fov_deg) < \
+            ecfg.exit_open_sectors
+        return self._after_ride
 
     def _elevator_shift(self, elevator: bool, odo: OdometryFrame, imu: np.ndarray | None,
                         stamp_ns: int):
@@ -390,16 +434,19 @@ class MonteCarloSlam:
         return overlap < self.cfg.keyframes.overlap
 
     def _add_keyframe(self, down: np.ndarray, covs: np.ndarray, odom_position: np.ndarray,
-                      loops: dict[int, tuple[int, ...]]) -> None:
+                      loops: dict[int, tuple[int, ...]], points: np.ndarray) -> None:
         """The scan becomes a keyframe, in a free slot or, when all are used, in the one
         `_slot_to_reuse` frees. `loops`: the slots the particles were corrected toward on this
-        scan (kept, so the scan's record names them)."""
+        scan (kept, so the scan's record names them); `points`: the whole scan (lidar
+        frame), whose range image says what the keyframe saw through."""
         p = self.particles
         slot = self._slot_to_reuse(loops) if p.full else None
         k = p.add_keyframe(self.travel_m, self.drift, odom_position, slot)
         pts, cv = thin(down, covs, self.cfg.keyframes.max_points)
         self.maps.clear(k, self.cfg.keyframes.voxel_m)
         self.maps.insert(k, pts, cv)
+        if self.free_space is not None:
+            self.free_space.store(k, points, down)
         self.keyframes.add(k, len(self.frames), down.astype(np.float32))
         self._last_keys = unique_keys(voxel_keys(down, self.cfg.keyframes.overlap_voxel_m))
 

@@ -27,6 +27,8 @@ PAPER: dict[str, Any] = {
     "correction.min_inliers": 6,
     "correction.refine_without_loop": False,
     "correction.spread_after_step": False,
+    # eq. 3: only scan points in a keyframe voxel are scored
+    "likelihood.free_space_cost": 0.0,
     # §III-F
     "pruning.posterior": 1e-8,
     "pruning.likelihood_ratio": 1e-16,

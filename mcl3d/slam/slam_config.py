@@ -100,6 +100,19 @@ class LikelihoodConfig(Section):
                                  "(tempering; see docs/slam.md)")
     outlier_cost: float = Field(0.0, ge=0, description="cost of a scan point with no voxel "
                                 "(a matched point costs eᵀΩe; 0 as in the paper)")
+    free_space_cost: float = Field(0.0, ge=0, description="cost of a scan point lying in "
+                                   "space a neighbour keyframe saw through, or of a keyframe "
+                                   "point in the scan's (docs/slam.md; 3 was studied); 0: "
+                                   "off, as in the paper")
+    free_space_margin_m: float = Field(0.3, ge=0, description="a point is in seen-through "
+                                       "space when nearer than the keyframe's return by more "
+                                       "than this (m) ...")
+    free_space_margin_frac: float = Field(0.05, ge=0, description="... and by more than this "
+                                          "fraction of the return's range")
+    free_space_bin_deg: float = Field(2.0, gt=0, le=30, description="bin of each keyframe's "
+                                      "spherical range image (deg)")
+    free_space_points: int = Field(128, ge=1, description="scan points judged per keyframe "
+                                   "(evenly of the scored ones; their count is scaled to all)")
 
 
 class PruningConfig(Section):
@@ -137,6 +150,15 @@ class ElevatorConfig(Section):
                              "elevator, without IMU (m)")
     imu_sigma_z_m: float = Field(0.01, ge=0, description="the same around the IMU's vertical "
                                  "motion (m)")
+    resample_on_entry: bool = Field(False, description="resample every particle by weight "
+                                    "when a ride starts, so the vertical walk spreads the "
+                                    "likely particles' copies over the heights, not a few "
+                                    "heavy particles to a few heights")
+    exit_open_sectors: int = Field(0, ge=0, description="after a ride, scans are neither "
+                                   "scored nor keyframes until this many sectors are open "
+                                   "(the sensor has left the cab, whose open doors leave "
+                                   "two: 3 was studied); 0: from the first scan the "
+                                   "detector lets go")
 
 
 class SlamConfig(Section):

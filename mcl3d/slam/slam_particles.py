@@ -22,6 +22,7 @@ from mcl3d.core.geometry import quat_to_rot, rot_to_quat, se3
 from mcl3d.kernels import slam as slam_kernels
 from mcl3d.kernels import slam_posterior
 from mcl3d.kernels.slam import NEIGHBOURS
+from mcl3d.slam.free_space import FreeSpace
 from mcl3d.slam.slam_config import CorrectionConfig, LikelihoodConfig
 
 DRIFT_SUMS = 5  # W, Σ w p (3), V: see SlamParticles.correct
@@ -59,6 +60,7 @@ class SlamParticles:
         self.nb = ti.field(ti.i32, (n, NEIGHBOURS))
         self.nb_loop = ti.field(ti.i32, (n, NEIGHBOURS))
         self.shift = ti.Vector.field(6, ti.f32, n)
+        self.seen = ti.field(ti.i32, n * NEIGHBOURS)  # points in seen-through space, per row
         self.corrected = ti.field(ti.i32, n)
         self.fixed_travel = ti.field(ti.f32, n)  # travel (m) at the particle's last correction
         self.fixed_drift = ti.Vector.field(DRIFT_SUMS, ti.f32, n)  # drift sums there
@@ -183,12 +185,23 @@ class SlamParticles:
         return {int(i): tuple(int(k) for k in row[m]) for i, row, m in zip(moved, nb, loop,
                                                                            strict=True)}
 
-    def weigh(self, num_src: int, cfg: LikelihoodConfig) -> None:
-        """Frame log-likelihood of every particle, added to its cumulative log weight."""
+    def weigh(self, num_src: int, cfg: LikelihoodConfig,
+              free_space: FreeSpace | None = None) -> None:
+        """Frame log-likelihood of every particle, added to its cumulative log weight;
+        with `free_space`, scan points in a neighbour's seen-through space and the
+        neighbour's points in the scan's (FreeSpace.count) cost `cfg.free_space_cost` each."""
         self._linearize(num_src, loop_only=False)
         best = self.gicp.poses.best
+        seen_cost = 0.0
+        if free_space is not None and cfg.free_space_cost > 0:
+            stride = max(1, num_src // cfg.free_space_points)
+            judged = (num_src + stride - 1) // stride
+            free_space.count(self, self.gicp.pool.points, num_src, stride,
+                             cfg.free_space_margin_m, cfg.free_space_margin_frac, self.seen)
+            seen_cost = cfg.free_space_cost * num_src / judged
         slam_kernels.likelihood(self.n, num_src, self.nb, best.e, best.n, cfg.outlier_cost,
-                                cfg.points_weight, self.frame_ll, self.log_w)
+                                self.seen, seen_cost, cfg.points_weight, self.frame_ll,
+                                self.log_w)
 
     def refine(self, covariance: np.ndarray, cfg: CorrectionConfig) -> int:
         """One Gauss-Newton step of every particle without a loop toward its own neighbour

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from mcl3d.core import geometry
-from mcl3d.slam.monte_carlo_slam import prune_plan
+from mcl3d.slam.monte_carlo_slam import prune_plan, resample_all
 from mcl3d.slam.slam_config import PruningConfig
 from mcl3d.slam.slam_particles import unpack_poses
 
@@ -340,9 +340,11 @@ def test_likelihood_matches_numpy(ti_runtime):
     frame_ll = ti.field(ti.f32, n)
     log_w = ti.field(ti.f32, n)
     log_w.from_numpy(np.array([-1.0, -2.0, 0.0], np.float32))
-    slam.likelihood(n, M, nb, best_e, best_n, 9.0, 30.0, frame_ll, log_w)
-    cost0 = 2 * (12 + 30 + 3) + 9 * (20 + 40 + 0)
-    cost1 = 2 * 8 + 9 * (10 + 100)
+    seen = ti.field(ti.i32, 3 * n)  # points in seen-through space, each costing 2.5
+    seen.from_numpy(np.array([4, 0, 1, 6, 0, 0, 0, 0, 7], np.int32))
+    slam.likelihood(n, M, nb, best_e, best_n, 9.0, seen, 2.5, 30.0, frame_ll, log_w)
+    cost0 = 2 * (12 + 30 + 3) + 9 * (20 + 40 + 0) + 2.5 * (4 + 0 + 1)
+    cost1 = 2 * 8 + 9 * (10 + 100) + 2.5 * 6
     want = np.array([-0.5 * 30 * cost0 / (3 * M), -0.5 * 30 * cost1 / (2 * M)])
     np.testing.assert_allclose(frame_ll.to_numpy()[:2], want, rtol=1e-6)
     assert frame_ll.to_numpy()[2] == np.float32(slam.UNSCORED)  # no neighbour: no evidence
@@ -421,3 +423,12 @@ def test_particle_keyframe_storage_is_allocated_up_front_and_keeps_poses(ti_runt
     for i in range(3):
         np.testing.assert_allclose(p.keyframe_poses(i), np.stack([T[i] for T in placed]),
                                    atol=2e-5)
+
+
+def test_resample_all_draws_by_weight_and_equalizes():
+    log_w = np.log(np.array([0.7, 0.2, 0.1, 1e-9, 1e-9, 1e-9, 1e-9, 1e-9, 1e-9, 1e-9]))
+    dead, sources, lw = resample_all(log_w, np.random.default_rng(3))
+    assert len(dead) == len(sources) and not set(dead) & set(sources)
+    kept = np.bincount(np.r_[np.setdiff1d(np.arange(10), dead), sources], minlength=10)
+    assert kept.sum() == 10 and kept[0] == 7 and kept[1] == 2 and kept[2] == 1  # systematic
+    np.testing.assert_array_equal(lw, np.zeros(10))

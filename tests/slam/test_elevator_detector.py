@@ -13,7 +13,7 @@ from mcl3d.sim.lidars import make_lidar
 from mcl3d.sim.mesh import MeshBuilder
 from mcl3d.sim.raycast import WorldCaster
 from mcl3d.sim.worlds import World, build_world
-from mcl3d.slam.elevator import in_elevator, sector_ranges
+from mcl3d.slam.elevator import in_elevator, open_sectors, sector_ranges
 from mcl3d.slam.slam_config import ElevatorConfig
 
 SENSORS = ("vlp16", "os1-64", "os0-64", "mid360")
@@ -82,6 +82,20 @@ def test_fires_in_the_closed_cab_and_not_once_its_doors_open(building, sensor):
         if z in elev.floor_z_m:
             opened = still_scan(building, sensor, xyz, 0.4, z, door_closed=False)
             assert not in_elevator(opened, ENCLOSURE)
+
+
+def test_the_cab_with_its_doors_open_leaves_fewer_open_sectors_than_the_lobby(building):
+    """After a ride SLAM can wait for `elevator.exit_open_sectors` open sectors (3 was
+    studied): the cab with its doors open has 1 or 2, the sensor out in front of it more."""
+    elev = building.elevator
+    z = elev.floor_z_m[1]
+    inside = [elev.center_xy[0] + 0.3, elev.center_xy[1] - 0.2, z + 1.0]
+    opened = still_scan(building, "mid360", inside, 0.4, z, door_closed=False)
+    assert 1 <= open_sectors(opened, ENCLOSURE) < 3
+    lobby = [*elev.door_approach_xy, z + 1.0]
+    assert open_sectors(still_scan(building, "mid360", lobby, 0.4, z), ENCLOSURE) >= 3
+    closed = still_scan(building, "mid360", inside, 0.4, z, door_closed=True)
+    assert open_sectors(closed, ENCLOSURE) == 0
 
 
 @pytest.mark.parametrize("gap_m", [1.5, 2.0, 2.5])

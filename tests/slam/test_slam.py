@@ -344,3 +344,34 @@ def test_a_run_that_fills_every_keyframe_goes_on_and_says_so(forest_log, tmp_pat
     assert summary["keyframes_made"] > 2
     full = [w for w in summary["odometry_warnings"] if "keyframes.capacity" in w]
     assert len(full) == 1, summary["odometry_warnings"]
+
+
+def test_slam_with_free_space_and_the_ride_settings_stays_on_track(forest_log, ti_runtime):
+    """The opt-in likelihood term (points in seen-through space) and the ride settings run
+    through a whole short log: the trajectory stays on the truth, and the free-space count
+    is in use (the true poses see almost nothing through a keyframe's free space)."""
+    from mcl3d.io.logs.reader import LogReader
+    from mcl3d.io.trajectory import read_tum
+    from mcl3d.odometry.scan_feed import LidarImuFeed
+    from mcl3d.slam.monte_carlo_slam import MonteCarloSlam
+    from mcl3d.slam.slam_config import SlamConfig
+
+    gt = read_tum(forest_log.with_name(forest_log.stem + "_gt.tum"))
+    cfg = SlamConfig.model_validate({"particles": 100, "seed": 1,
+                                     "likelihood": {"free_space_cost": 3.0},
+                                     "elevator": {"resample_on_entry": True,
+                                                  "exit_open_sectors": 3}})
+    slam = MonteCarloSlam(cfg)
+    seen = []
+    with LogReader(forest_log) as reader:
+        for cloud, imu, T_lidar_imu in LidarImuFeed(reader, True):
+            slam.odometry.T_lidar_imu = T_lidar_imu
+            slam.step(cloud.points, cloud.times_s, cloud.stamp_ns, imu)
+            rows = slam.particles.nb.to_numpy().ravel() >= 0
+            seen.append(slam.particles.seen.to_numpy()[rows].mean() if rows.any() else 0.0)
+    assert slam.free_space is not None and slam.free_space.kf_counts.to_numpy().max() > 0
+    assert np.max(seen) > 0 and np.mean(seen) < 0.1 * cfg.likelihood.free_space_points
+    stamps, poses = slam.trajectory()
+    ref = gt.interpolate_poses(stamps * 1e-9)
+    aligned = ref[0] @ geometry.se3_inverse(poses[0]) @ poses
+    assert np.linalg.norm(aligned[:, :3, 3] - ref[:, :3, 3], axis=1).max() < 0.25
