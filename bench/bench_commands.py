@@ -36,7 +36,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from results_io import RESULTS, Run
+from results_io import RESULTS, Run, commit
 
 SKIP_SCANS = 2  # the first updates compile kernels: "warm" excludes them
 LOC_STAGES = ("motion", "likelihood", "weights", "estimate", "resample", "recovery")
@@ -458,6 +458,10 @@ def main() -> None:
              "Odometry: the step timed in this process, interleaved frame by frame with "
              f"KISS-ICP on the same decoded scans, median over frames of {args.repeats} "
              "pass(es); the command's own per-scan time is in its stage rows."]
+    measured = (f"{time.strftime('%Y-%m-%d %H:%M', time.gmtime(run.started))} UTC (commit "
+                f"{commit()}, load {run.load_before:.2f} at its start)")
+    for figures in raw.values():
+        figures["measured"] = measured
     if args.update:
         rows, stages, raw, notes = kept_from_earlier(args.out or RESULTS, raw, rows, stages,
                                                      notes)
@@ -472,7 +476,8 @@ def main() -> None:
 def kept_from_earlier(path: Path, raw: dict, rows: list[dict], stages: list[dict],
                       notes: list[str]) -> tuple[list[dict], list[dict], dict, list[str]]:
     """--update: the earlier JSON's rows, stages and raw figures of the (world, command)
-    pairs not rerun, then this run's; a note names both runs."""
+    pairs not rerun, then this run's; a note names the run of each pair (kept in its raw
+    figures, so a chain of updates keeps them all)."""
     path = path / "bench_commands.json" if path.is_dir() else path
     if not path.exists():
         return rows, stages, raw, notes
@@ -485,10 +490,14 @@ def kept_from_earlier(path: Path, raw: dict, rows: list[dict], stages: list[dict
                    if _unit(r["command"].split("(")[1].split(",")[0].rstrip(")"),
                             r["command"]) not in rerun]
     kept_raw = {k: v for k, v in figures["raw"].items() if _unit(*k.split("/", 1)) not in rerun}
-    note = (f"Rows of {', '.join(sorted(raw))} from this run ({time.strftime('%Y-%m-%d %H:%M')}"
-            f" UTC); the others from the run of {earlier['date']} (commit {earlier['commit']},"
-            f" load {earlier['load_average']['before']} at its start).")
-    return kept_rows + rows, kept_stages + stages, {**kept_raw, **raw}, [note, *notes]
+    merged = {**kept_raw, **raw}
+    runs: dict[str, list[str]] = {}
+    for key, figures in merged.items():
+        runs.setdefault(figures.get("measured", f"{earlier['date']} (commit "
+                                    f"{earlier['commit']})"), []).append(key)
+    note = "Measured in several runs: " + "; ".join(
+        f"{', '.join(sorted(keys))} on {when}" for when, keys in sorted(runs.items())) + "."
+    return kept_rows + rows, kept_stages + stages, merged, [note, *notes]
 
 
 def _unit(world: str, command: str) -> tuple[str, str]:

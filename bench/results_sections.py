@@ -31,12 +31,18 @@ around its stages; \"outside the steps\" is the whole command less its per-scan 
 decoding, outputs). KISS-ICP runs on the same decoded scans in the same process,
 interleaved frame by frame.
 
-Where a target is missed, the stage rows say why. `build-map` in the warehouse: its aisles are
-57 m long, so most points are far and fill a band patch of up to 5 × 5 columns instead of one
-(the band, ~29 ms a scan without carving; 23 ms with every patch cut to one column), long
-rays carve through many blocks (~15 ms) and more blocks are allocated per scan (~10 ms).
-An OS1-64 (65,000 points a
-scan, the fusion bench) takes 75 ms a scan: 1.3× real time. `slam` with 10,000 particles: the
+Where a target is missed, the stage rows say why. `build-map` passes 2× in both worlds
+with its kernels compiled (2.85× and 2.83× on 2026-11-27, idle; 2.42× and 1.21× on
+2026-11-26, before the scan band shared the point-cloud build's dispatch, the map file was
+written in chunks at deflate level 1 and ground points of scans without rings got a normal
+across their ring: the warehouse's band + carving went from 43.7 to 15.1 ms a scan and its
+allocation from 13.8 to 3.3 ms; which change gave how much was not isolated; a first
+office run five minutes earlier measured 1.72×, its band + carving 38 ms a scan, for no
+cause we found). With an empty
+kernel cache the same command takes 46 s (1.3× real time): the map's origin and shape are
+compiled into the fusion kernels, so every map of another size compiles them again (~23 s
+on 2 cores), until that geometry is passed at run time. An OS1-64 (65,000 points a scan,
+the fusion bench) takes 65 ms a scan (102 cpu-ms): 1.5× real time. `slam` with 10,000 particles: the
 likelihood linearizes 10,000 particles × 3 keyframes × 512 points (15 million GICP
 correspondences, ~6 ns each on 2 cores) every scan, and in the warehouse's look-alike aisles
 many particles see a loop keyframe each scan and linearize again for the correction."""),
@@ -291,7 +297,19 @@ MID-360): with the IMU SLAM ends on the right floor in 5 of 5 seeds (0.00–0.02
 (3.5 and 3.75 m; also at 2,000 particles), so "4 of 5" is out of reach. After the ride the
 cloud collapses onto particles the vertical random walk carried above the top floor: more
 than 2 m from every keyframe they are not scored (they get the median likelihood), and
-structure missing from the wrong floor's map costs nothing. Seeds 3–5 without IMU not run.
+structure missing from the wrong floor's map costs nothing.
+
+A free-space term (`likelihood.free_space_cost`: a scan point in space a neighbour keyframe
+saw through, or a keyframe point in the scan's, costs; docs/slam.md), resampling on entering
+the cab and holding the scoring until the cab is left (`elevator.resample_on_entry`,
+`elevator.exit_open_sectors`) remove that ghost floor, but the cloud then settles on 3F
+within 4 s of leaving the cab, not on 2F: 3F's keyframes were made just before the ride,
+2F's 100 s earlier with ~2° of pitch drift, so 3F matches the lobby better. Without IMU,
+all three on (2026-11-27, 1,000 particles, load 3–6): seeds 1, 2, 3 end 3.52, 3.57,
+3.33 m off (seed 3 never run before); with IMU seed 1 stays right (0.01 m). On the short
+forest loop the term costs twice the frame time (99.6 against 47.7 ms median, 2,000
+particles) for the same ATE (0.058 against 0.062 m), so all three stay off by default.
+Seeds 4–5 without IMU not run.
 
 The elevator detector (`elevator.detector: enclosure`, every one of 12 azimuth sectors
 closed within 3 m at the 90th percentile) fires inside the cab with the doors shut, and
