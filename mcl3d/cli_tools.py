@@ -142,6 +142,10 @@ def simulate(
         show_default=False)] = None,
     seed: Annotated[int, typer.Option("--seed", help="Seed of the world, the path and every "
                                       "noise: same seed, same bytes.")] = 0,
+    world_seed: Annotated[int | None, typer.Option(
+        "--world-seed", help="Seed of the world's layout alone (furniture, the arena's stage; "
+                             "default: --seed): a second log of the same world, e.g. one to "
+                             "build a map from.", show_default=False)] = None,
     config: Annotated[Path | None, typer.Option(
         "--config", help="YAML/TOML with sections world, lidar, imu, odometry, map (the "
                          "saved _config.yaml lists every key).", show_default=False)] = None,
@@ -161,7 +165,8 @@ def simulate(
         result = run(SimulateRequest(world=world, sensor=sensor, trajectory=trajectory,
                                      duration_s=duration, seed=seed, output=output,
                                      config_path=config, export_mesh=export_mesh,
-                                     export_map=export_map, force=force), bars.on_progress)
+                                     export_map=export_map, force=force,
+                                     world_seed=world_seed), bars.on_progress)
     console.print(summary_table("Simulation", summary_rows(result)))
 
 

@@ -127,6 +127,11 @@ class SimulateRequest:
     export_mesh: Path | None = None
     export_map: Path | None = None
     force: bool = False
+    world_seed: int | None = None  # None: `seed`; logs of one world with other paths share it
+
+    @property
+    def layout_seed(self) -> int:
+        return self.seed if self.world_seed is None else self.world_seed
 
 
 @dataclass
@@ -166,6 +171,9 @@ def _validate(req: SimulateRequest) -> None:
                           setting="duration")
     if req.seed < 0:
         raise ConfigError(f"the seed must be >= 0, got {req.seed}", setting="seed")
+    if req.world_seed is not None and req.world_seed < 0:
+        raise ConfigError(f"the world seed must be >= 0, got {req.world_seed}",
+                          setting="world-seed")
 
 
 def with_scenario_world(cfg: SimConfig, trajectory: str) -> SimConfig:
@@ -208,7 +216,7 @@ def run(request: SimulateRequest, on_progress: ProgressCallback | None = None
     outputs = output_paths(req)
     for path in outputs:
         check_writable(path, req.force)
-    world = build_world(req.world, seed=req.seed, **cfg.world.sizes(req.world))
+    world = build_world(req.world, seed=req.layout_seed, **cfg.world.sizes(req.world))
     if req.duration_s is None:
         req = replace(req, duration_s=default_duration_s(world, req.trajectory))
     n_scans = _scan_count(req, cfg)
@@ -332,7 +340,8 @@ def summary_rows(result: SimulateResult) -> list[tuple[str, str]]:
     """The rows of the end-of-run summary table."""
     req = result.request
     sim_s = result.n_scans / result.scan_rate_hz
-    rows = [("world", f"{req.world} ({result.world_triangles} triangles, seed {req.seed})"),
+    rows = [("world", f"{req.world} ({result.world_triangles} triangles, seed "
+                      f"{req.layout_seed})"),
             ("sensor", req.sensor), ("trajectory", req.trajectory),
             ("scans", str(result.n_scans)), ("points/scan", f"{result.points_per_scan:.0f}"),
             ("IMU samples", str(result.n_imu)), ("odometry samples", str(result.n_odom)),
