@@ -18,6 +18,7 @@ Seeds: `--log-seeds` change the world's details, the path's oscillations and the
 noise (each has its own log and map); `--seeds` are the filter's seeds on each log.
 
     python bench/study_ambiguity.py --worlds warehouse office arena --seeds 1 2 3 4 5
+    python bench/study_ambiguity.py --quick   # office and arena, seed 1, the first 20 s
     python bench/study_ambiguity.py --report bench/results/study_ambiguity.json
 """
 
@@ -99,7 +100,7 @@ def run_one(work: Path, world: str, log_seed: int, seed: int, args) -> dict:
 
     log, tsdf, gt_tum = make_data(work, world, log_seed)
     out = work / f"run_{world}_{log_seed}_{seed}_{args.particles}"
-    cfg = LocalizeConfig.model_validate({"localizer": {
+    cfg = LocalizeConfig.model_validate({"max_scans": args.max_scans or None, "localizer": {
         "particles": args.particles, "seed": seed,
         "sensor": {"max_range_m": args.range}}})
     t0 = time.perf_counter()
@@ -109,6 +110,8 @@ def run_one(work: Path, world: str, log_seed: int, seed: int, args) -> dict:
     states = [str(r.state) for r in res.results]
     return {"world": world, "log_seed": log_seed, "seed": seed,
             "particles": args.particles, "range_m": args.range, "wall_s": round(wall_s, 1),
+            "ms_per_update": round(res.summary.ms_per_update["total"], 1),
+            "claim_checks": res.claim_checks,
             **judge(t_s, d, a, states, WORLDS[world][2])}
 
 
@@ -131,6 +134,10 @@ def main() -> None:
     ap.add_argument("--seeds", nargs="+", type=int, default=[1, 2, 3, 4, 5])
     ap.add_argument("--particles", type=int, default=100_000)
     ap.add_argument("--range", type=float, default=6.0, help="range gate (m)")
+    ap.add_argument("--max-scans", type=int, default=0, help="stop each run after this "
+                    "many scans (0: the whole log)")
+    ap.add_argument("--quick", action="store_true",
+                    help="office and arena, log and filter seed 1, the first 200 scans")
     ap.add_argument("--work", type=Path, default=RESULTS / "study_ambiguity")
     ap.add_argument("--json", type=Path, default=RESULTS / "study_ambiguity.json")
     ap.add_argument("--report", nargs="+", type=Path, help="print the table of these files")
@@ -138,6 +145,8 @@ def main() -> None:
     if args.report:
         report([r for f in args.report for r in json.loads(f.read_text())["runs"]])
         return
+    if args.quick:
+        args.worlds, args.log_seeds, args.seeds, args.max_scans = ["office", "arena"], [1], [1], 200
     from mcl3d.core import runtime
 
     runtime.init("cpu")

@@ -61,6 +61,7 @@ from pathlib import Path
 import numpy as np
 
 TOL_M, TOL_DEG = 0.2, 3.0
+WRONG_M, WRONG_DEG = 1.0, 10.0  # a `converged` claim this far off is a false convergence
 WORLDS = {"office": "ground", "arena": "drone"}
 MAPPING_ROUTES = {"office": ("survey", 325.0), "arena": ("loop", 140.0)}  # once round, s
 
@@ -305,7 +306,8 @@ def localize_once(log: Path, tsdf: Path, out: Path, n: int, seed: int, args) -> 
     summary = json.loads((out / "summary.json").read_text())
     return {"wall_s": round(time.perf_counter() - t0, 1), "stopped_early": stopped_early,
             "filter_converged_at_scan": summary["converged_at_scan"],
-            "ms_per_update": round(summary["ms_per_update"]["total"], 1)}
+            "ms_per_update": round(summary["ms_per_update"]["total"], 1),
+            "claim_checks": summary.get("claim_checks"), "states": stop.states}
 
 
 def setting(run: dict) -> str:
@@ -401,6 +403,8 @@ def main() -> None:
                     help="run the office kidnap recovery for these seeds instead")
     ap.add_argument("--kidnap-duration", type=float, default=8.0)
     ap.add_argument("--kidnap-particles", type=int, default=50_000)
+    ap.add_argument("--tag", default="", help="appended to every run's folder name (a "
+                    "variant of the code or settings beside earlier runs)")
     ap.add_argument("--work", type=Path, default=Path("bench/results/study_global"))
     ap.add_argument("--json", type=Path, default=Path("bench/results/study_global.json"))
     args = ap.parse_args()
@@ -441,16 +445,20 @@ def main() -> None:
                 suffix = "" if args.preset == "default" else f"_{args.preset}"
                 if args.map_source != "mesh":
                     suffix += f"_{args.map_source}"
+                suffix += args.tag
                 out = args.work / f"{world}_{seed}{variant_tag(args)}_{n}{suffix}"
                 timing = localize_once(log, tsdf, out, n, seed, args)
                 d, a = scan_errors(out, gt)
+                claimed = np.array([s == "converged" for s in timing.pop("states")][:len(d)])
+                wrong = claimed & ((d[:len(claimed)] > WRONG_M) | (a[:len(claimed)] > WRONG_DEG))
                 run = {"preset": args.preset, "world": world, "seed": seed, "particles": n,
                        "map": args.map_source, "sensor": args.sensor or "vlp16",
                        "odometry_sigma": args.sigma,
                        "scans": len(d),
                        **timing, **evaluate_run(d, a, args.tail),
                        "rmse_after_filter_converged_m": tracking_rmse(
-                           d, timing["filter_converged_at_scan"])}
+                           d, timing["filter_converged_at_scan"]),
+                       "false_converged_scans": int(wrong.sum())}
                 runs.append(run)
                 print(json.dumps(run), flush=True)
                 rows = summarize(runs, args.worlds, sorted(args.particles))

@@ -145,6 +145,19 @@ class PlaceEvidence:
             return np.inf
         return float(out[kpe.OUT_AWAY]) - float(out[kpe.OUT_INSIDE])
 
+    def best_near(self, p: ParticleSet, T: np.ndarray, radius_m: float, angle_rad: float
+                  ) -> float:
+        """The best evidence within `radius_m` / 2 and `angle_rad` / 2 of pose T (0.0 when no
+        particle is there): what a place re-seeded beside it starts from."""
+        if self.n != p.n or not p.n:
+            return 0.0
+        t, q = geometry.tq_from_se3(np.asarray(T, np.float64))
+        kpe.rival_bests(p.pos, p.quat, self.log_l, p.n, ti.math.vec3(*t), ti.math.vec4(*q),
+                        radius_m, math.cos(0.5 * min(0.5 * angle_rad, math.pi)),
+                        math.cos(0.5 * min(angle_rad, math.pi)), self.fields)
+        out = self.fields.out.to_numpy()
+        return float(out[kpe.OUT_INSIDE]) if out[kpe.OUT_N_INSIDE] > 0 else 0.0
+
     def inherit(self, parent, n_out: int) -> None:
         """After resampling: child k continues the evidence of particle `parent[k]` (a
         device field)."""

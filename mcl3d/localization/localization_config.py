@@ -139,6 +139,36 @@ class EstimateConfig(Section):
         return math.radians(self.converge_min_rotation_deg)
 
 
+class CheckConfig(Section):
+    """The check of a global search's convergence claim against the whole map
+    (mcl3d.localization.claim_check): the claim stands only when no other place, with or
+    without particles, explains the recent scans about as well."""
+
+    enabled: bool = Field(True, description="check every claim of a global search")
+    grid_m: float = Field(0.5, gt=0.0, description="test positions: one per cell of this "
+                                                   "size holding a global candidate")
+    yaw_deg: float = Field(10.0, gt=0.0, le=90.0, description="... times yaws this far apart")
+    coarse_sigma_m: float = Field(0.4, gt=0.0, description="the coarse model's sigma for the "
+                                                           "test poses (wide: grid error)")
+    coarse_scans: int = Field(1, ge=1, description="newest scans of the window the test "
+                                                   "poses are scored on")
+    place_m: float = Field(2.0, gt=0.0, description="one best test pose per cell of this size")
+    place_yaw_deg: float = Field(30.0, gt=0.0, le=360.0, description="... and yaw bin")
+    candidates: int = Field(15, ge=1, le=63, description="best places refined and compared")
+    window_scans: int = Field(8, ge=1, description="scans, spread over the search so far, "
+                                                   "that the refined places are compared on")
+    history_scans: int = Field(300, ge=1, description="the window spans at most this many "
+                                                      "scans back")
+    refine_poses: int = Field(256, ge=8, description="poses around each place per round")
+    margin_nats: float = Field(
+        4.6, ge=0.0, description="a place within this many nats of the claim's (summed "
+                                 "tempered log-likelihood over the window) explains the scans "
+                                 "about as well: the claim is withheld")
+    inject_share: float = Field(0.05, gt=0.0, lt=0.5,
+                                description="share of the particles re-seeded at each such "
+                                            "place that holds none")
+
+
 class RecoveryConfig(Section):
     """Loss detection on the weighted match ratio (AMCL-style fast/slow averages)."""
 
@@ -182,6 +212,7 @@ class LocalizerConfig(Section):
     estimate: EstimateConfig = EstimateConfig()
     recovery: RecoveryConfig = RecoveryConfig()
     init: InitConfig = InitConfig()
+    check: CheckConfig = CheckConfig()
 
 
 def check_config(cfg: LocalizerConfig) -> None:

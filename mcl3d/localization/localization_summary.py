@@ -53,6 +53,7 @@ class LocalizeSummary:
     ate_rmse_m_evo: float | None = None  # ATE as evo computes it, a cross-check
     faults: LogFaults = field(default_factory=LogFaults)  # the log's messages dropped
     preset: str = "default"  # the --preset the settings started from
+    claim_checks: dict = field(default_factory=dict)  # convergence checks: runs, ms, withheld
 
     def to_json(self) -> dict:
         """summary.json's content: the fields, without the ground-truth ones when absent."""
@@ -126,6 +127,10 @@ def summary_rows(s: LocalizeSummary, out_dir) -> list[tuple[str, str]]:
             rows.append((label, f"{e.translation_rmse_m:.3f} m RMSE (max "
                                 f"{e.translation_max_m:.3f}), {e.rotation_rmse_deg:.2f} "
                                 f"deg RMSE (max {e.rotation_max_deg:.2f})"))
+    checks = s.claim_checks
+    if checks.get("runs"):
+        rows.append(("convergence checks", f"{checks['runs']} ({checks['ms_per_run']:.0f} ms "
+                                           f"each), {checks['withheld']} claims withheld"))
     ms = s.ms_per_update
     rows.append(("ms per update (warm)", f"{ms['total']:.1f} = " + " + ".join(
         f"{k} {v:.1f}" for k, v in ms.items() if k != "total")))

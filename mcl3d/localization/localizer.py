@@ -2,11 +2,12 @@
 
 One step reads as the algorithm: predict (motion update, kernel) -> weigh (scan likelihood
 and weights, kernels) -> estimate (the dominant cluster of a weighted subsample drawn on the
-device, host; a global search's place evidence on the device, see `evidence`; no
-per-particle array leaves the device, see `particle_stats`) -> loss check -> resample
+device, host; a global search's place evidence on the device, see `evidence`; its claims
+checked against the whole map, see `claim_check`; no per-particle array leaves the device,
+see `particle_stats`) -> loss check -> resample
 (systematic, kernels, when the ESS is low; optionally KLD-sampling; mode-preserving during a
 global search, see `search`) -> recover (re-seed part of the cloud when the filter has lost
-track, see `recovery`).
+track, see `recovery`; places a check found get a share of the particles).
 """
 
 from __future__ import annotations
@@ -19,8 +20,10 @@ import taichi as ti
 
 from mcl3d.core import geometry
 from mcl3d.core.errors import InputError, MapError
+from mcl3d.kernels import claim_check as kcc
 from mcl3d.kernels import motion
 from mcl3d.kernels import particles as kp
+from mcl3d.localization.claim_check import INJECT_STD, ClaimCheck, Rival
 from mcl3d.localization.estimate import PoseEstimate, WeightedParticles, estimate_from_sample
 from mcl3d.localization.evidence import PlaceEvidence
 from mcl3d.localization.initialization import FreeCells, free_cells
@@ -34,6 +37,7 @@ from mcl3d.localization.particle_stats import (
     evenly,
 )
 from mcl3d.localization.random_streams import (
+    CHECK_COUNTER,
     ESTIMATE_SAMPLE_STREAM,
     EVIDENCE_COUNTER,
     INIT_GLOBAL_COUNTER,
@@ -90,6 +94,8 @@ class Localizer:
         self.search = GlobalSearch(config, self.sampler)
         self.recovery = Recovery(config.recovery)
         self.evidence = PlaceEvidence(config.particles)
+        self.claim_check = ClaimCheck(config)
+        self._rivals: list[Rival] = []  # places the check found, re-seeded after resampling
         self._places = False  # whether this update added to the places' evidence
         self.weigher = ScanWeigher(tsdf, config.sensor, config.particles)
         self._free: FreeCells | bool | None = None  # False: the map has no candidates
@@ -159,6 +165,7 @@ class Localizer:
     def _start_search(self, scans_done: int = 0) -> None:
         """A fresh global search: coarse model first, convergence only after motion."""
         self.search.start(scans_done)
+        self.claim_check.reset()
         self._init_step = self.step_index
         self.ever_converged = False
         if self.cfg.sensor.coarse_sigma_m > 0:
@@ -195,6 +202,8 @@ class Localizer:
         pts = reduce_scan(scan_points, self.cfg.sensor, host_rng(self.seed, counter),
                           point_times_s, twist)
         self._weigh(pts, stamp_s, coarse_sigma)
+        if self.search.active and self.cfg.check.enabled:
+            self.claim_check.add_scan(pts, T_prev_curr)
         timer.lap("likelihood")
         n = self.particles.n
         weights = compute_weights(self.particles)
@@ -207,9 +216,13 @@ class Localizer:
         if reseed == "global" and not self._can_seed_globally():
             reseed = "expansion"
         timer.lap("recovery")
-        resampled = bool(reseed) or weights.ess < self.cfg.resample.ess_threshold * n
+        resampled = (bool(reseed) or bool(self._rivals)
+                     or weights.ess < self.cfg.resample.ess_threshold * n)
         if resampled:
             self._resample(weights, reseed, counter)
+            if self._rivals and not reseed:
+                self._reseed_rivals(estimate.T_map_lidar)
+            self._rivals = []
         timer.lap("resample")
         if reseed:
             self._recover(reseed, estimate.T_map_lidar)
@@ -304,6 +317,8 @@ class Localizer:
         converged = estimate.dominant and not rival
         if self.search.active:
             converged = self.search.converged(converged)
+            if converged and self._claim_withheld(estimate.T_map_lidar):
+                converged, rival = False, True
         if converged:
             self.ever_converged = True
             self.search.active = False
@@ -322,6 +337,40 @@ class Localizer:
                                       2 * e.cluster_radius_m, 2 * e.cluster_angle_rad)
         live = max(self.search.live_places, 2)
         return gap > -max(e.rival_margin_nats, self.evidence.noise_margin(live))
+
+    def _claim_withheld(self, T_claim: np.ndarray) -> bool:
+        """Whether the convergence check (see `claim_check`) found a place without particles
+        that explains the scans about as well as the claim: then the claim is withheld and
+        those places are re-seeded after this update's resampling."""
+        if not self.cfg.check.enabled or not self._can_seed_globally():
+            return False
+        self._rivals = self.claim_check.rivals(
+            self.weigher, self.particles, T_claim, self.free_space(), self.seed,
+            kernel_counter(self.step_index, CHECK_COUNTER))
+        if self._rivals:
+            self.claim_check.withheld += 1
+            self.search.dominant_run = 0
+        return bool(self._rivals)
+
+    def _reseed_rivals(self, T_claim: np.ndarray) -> None:
+        """A share of the particles (a stride: a like share of every place) around each
+        rival, with the average log-weight and the claim's best evidence plus the rival's
+        window gap: the filter's evidence then decides between the places."""
+        c, e, p = self.cfg.check, self.cfg.estimate, self.particles
+        k = len(self._rivals)
+        count = min(max(1, int(c.inject_share * p.n)), p.n // (2 * k))
+        stride = p.n // (count * k)
+        base = self.evidence.best_near(p, T_claim, 2 * e.cluster_radius_m,
+                                       2 * e.cluster_angle_rad)
+        std_t, std_r = INJECT_STD
+        for i, r in enumerate(self._rivals):
+            t, q = geometry.tq_from_se3(r.T_map_lidar)
+            kcc.inject(p.pos, p.quat, p.log_w, self.evidence.log_l, i * stride, stride * k,
+                       count, ti.math.vec3(*t), ti.math.vec4(*q), ti.math.vec3(*std_t),
+                       ti.math.vec3(*std_r), 0.0, base + r.gap_nats, self.seed,
+                       kernel_counter(self.step_index, CHECK_COUNTER) ^ 0x5EED)
+            self.claim_check.tried(r.T_map_lidar)
+        self.claim_check.reseeded_particles += count * k
 
     def _check_loss(self, estimate: PoseEstimate, state: FilterState
                     ) -> tuple[FilterState, Reseed]:

@@ -107,6 +107,7 @@ class LocalizeResult:
     gt: tuple | None = None  # (stamps_ns, T_map_lidar) when the log has ground truth
     height_band_m: list[float] | None = None  # the band global init used, when auto
     faults: LogFaults = field(default_factory=LogFaults)  # the log's messages dropped
+    claim_checks: dict = field(default_factory=dict)  # the convergence checks' counts, ms
 
 
 def run(request: LocalizeRequest, on_progress: ProgressCallback | None = None
@@ -175,6 +176,7 @@ def _run_filter(req: LocalizeRequest, tsdf, paths: dict[str, Path], map_points: 
                 loop.run(reader)
             except KeyboardInterrupt:
                 out.interrupted = True
+    out.claim_checks = loc.claim_check.stats()
     return out
 
 
@@ -311,6 +313,6 @@ def _summary(out: LocalizeResult, cfg: LocalizeConfig, info) -> LocalizeSummary:
         init=cfg.localizer.init.mode, height_band_m=out.height_band_m,
         converged_at_scan=conv, converged_after_s=after_s, converged_fraction=fraction,
         final_state=res[-1].state.value, ms_per_update=stage_means(res), warnings=out.warnings,
-        faults=out.faults)
+        faults=out.faults, claim_checks=out.claim_checks)
     summarize(res, summary, out.gt)
     return summary

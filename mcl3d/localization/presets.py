@@ -28,7 +28,8 @@ def paper() -> dict[str, Any]:
     uniform in 6 DoF over all observed free space (independent draws, any rotation),
     resampling after every scan, the weighted mean of all particles as the estimate, and
     none of the search aids the paper does not have: no coarse phase, no annealing, no
-    exploration noise, no mode or place protection, no rival test, no re-seeding."""
+    exploration noise, no mode or place protection, no rival test, no convergence check,
+    no re-seeding."""
     return {
         "localizer.sensor.model": "paper",
         "localizer.sensor.sigma_m": 0.1,
@@ -46,6 +47,7 @@ def paper() -> dict[str, Any]:
         "localizer.estimate.mean": "all",
         "localizer.estimate.rival_margin_nats": 0.0,
         "localizer.recovery.enabled": False,
+        "localizer.check.enabled": False,
     }
 
 

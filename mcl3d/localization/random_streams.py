@@ -12,6 +12,7 @@ MOTION_COUNTER = 0  # the motion noise; also keys the scan subset and the resamp
 INIT_GLOBAL_COUNTER = 1  # particles drawn over the map's free space
 INIT_POSE_COUNTER = 2  # particles drawn around a pose
 EVIDENCE_COUNTER = 3  # the particles of each place that judge a scan (place evidence)
+CHECK_COUNTER = 4  # the poses of a convergence check and the particles it re-seeds
 
 ESTIMATE_SAMPLE_STREAM = 3  # the weighted subsample that the estimate clusters
 MODE_SAMPLE_STREAM = 4  # the uniform subsample that finds populous modes

@@ -140,9 +140,10 @@ def hall():
 
 
 def search_two_modes(tsdf, scanner, path, mirror, n_true, true_offset_m, true_yaw, spread_m,
-                     spread_rad, resample, rng):
+                     spread_rad, resample, rng, check=True):
     """A global search of 6000 particles along `path`: n_true near the truth (shifted by
-    true_offset_m, at yaw true_yaw), the rest on the `mirror` pose; the results per scan."""
+    true_offset_m, at yaw true_yaw), the rest on the `mirror` pose; the results per scan.
+    check=False: without the convergence check (which would re-seed a dead true mode)."""
     from mcl3d.localization.localization_config import LocalizerConfig
     from mcl3d.localization.localizer import Localizer
 
@@ -154,7 +155,7 @@ def search_two_modes(tsdf, scanner, path, mirror, n_true, true_offset_m, true_ya
     quats = geometry.rot_to_quat(geometry.so3_exp(np.column_stack([0 * yaw, 0 * yaw, yaw])))
     cfg = LocalizerConfig.model_validate({"particles": n, "seed": 3, "sensor": {
         "max_range_m": 3.5, "min_range_m": 0.5}, "resample": resample,
-        "recovery": {"enabled": False}})
+        "recovery": {"enabled": False}, "check": {"enabled": check}})
     loc = Localizer(tsdf, cfg, imu_roll_pitch=(0.0, 0.0))
     loc.init_particles(positions, quats, search=True)
     motions = odometry(path, np.random.default_rng(1))
@@ -170,7 +171,9 @@ def test_a_light_true_mode_survives_until_the_evidence_comes(hall, ti_runtime, m
     mode before the crate is seen (mode_share 0: the filter ends on the mirror); the mode
     floor keeps it, refuses to converge while both hold weight, and ends on the truth.
     Recovery is off: this is about the search. Plain resampling loses the true mode at this
-    noise seed and at about half of the others tried (2 of 4); the floor kept it in 4 of 4."""
+    noise seed and at about half of the others tried (2 of 4); the floor kept it in 4 of 4.
+    Without the floor the convergence check is off too: it would re-seed the dead true mode
+    when the mirror is claimed (test_claim_check), and the run would end on the truth."""
     tsdf, mesh = hall
     scanner = localize_world.Scanner(n_azimuth=120, seed=4, mesh=mesh)  # same noise for both
     n_scans = 36  # the crate comes into range at about scan 18
@@ -179,7 +182,7 @@ def test_a_light_true_mode_survives_until_the_evidence_comes(hall, ti_runtime, m
     mirror = geometry.se3(geometry.rpy_to_rot(0, 0, np.pi), [16.0 - 9.0, 3.0, 0.8])
     results = search_two_modes(tsdf, scanner, path, mirror, 120, [0.0, 0.0, 0.0], 0.0,
                                [0.15, 0.15, 0.03], 0.05, {"mode_share": mode_share},
-                               np.random.default_rng(0))
+                               np.random.default_rng(0), check=mode_share > 0)
     d, a = errors(results[-1].T_map_lidar, path[-1])
     if mode_share == 0.0:
         assert d > 5.0, "without the mode floor the light true mode should have died"
@@ -198,7 +201,8 @@ def test_a_misaligned_true_mode_aligns_before_it_is_judged(hall, ti_runtime, gra
     better pose, but its misaligned particles score worse than the aligned mirror at first.
     Judged at once (grace 0) by weight alone it drops below the rival weight, loses its
     floor and dies; the default grace keeps it while it aligns, and so does the place floor
-    (a place dies only when its evidence is ruled out), and the filter ends on the truth."""
+    (a place dies only when its evidence is ruled out), and the filter ends on the truth.
+    Without the floor the convergence check is off too (it would re-seed the dead truth)."""
     tsdf, mesh = hall
     scanner = localize_world.Scanner(n_azimuth=120, seed=5, mesh=mesh)
     path = np.stack([geometry.se3(np.eye(3), [10.6 + 0.08 * k, 3.0, localize_world.LIDAR_Z_M])
@@ -208,7 +212,8 @@ def test_a_misaligned_true_mode_aligns_before_it_is_judged(hall, ti_runtime, gra
     if not place_floor:
         resample["place_min_particles"] = 0
     results = search_two_modes(tsdf, scanner, path, mirror, 300, [0.4, 0.2, 0.0], 0.1,
-                               [0.08, 0.08, 0.02], 0.03, resample, np.random.default_rng(1))
+                               [0.08, 0.08, 0.02], 0.03, resample, np.random.default_rng(1),
+                               check=place_floor)
     d, a = errors(results[-1].T_map_lidar, path[-1])
     if not place_floor:
         assert d > 5.0, "judged at once by weight, the misaligned true mode should have died"
