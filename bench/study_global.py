@@ -108,15 +108,16 @@ def make_data(work: Path, world: str, seed: int, args) -> tuple[Path, Path, Path
 
 
 def map_from_log(work: Path, world: str, seed: int, args) -> Path:
-    """A map from a log: `mcl3d build-map` over another log of the same world (once round a
-    route that sees every room, with its own seed, so other noise: the paper, too, mapped
-    with other trajectories than it localized on), at the log's true poses (`log`, what
+    """A map from a log: `mcl3d build-map` over another log of the same world (the same
+    `--world-seed`, so the same furniture; once round a route that sees every room, with its
+    own seed, so other noise: the paper, too, mapped with other trajectories than it
+    localized on), at the log's true poses (`log`, what
     build-map does by default) or at the poses of `mcl3d odometry` on it, anchored at its
     first true pose so the map shares the world's frame (`odometry-log`: a robot's map)."""
     from mcl3d.io.trajectory import Trajectory, read_tum, write_tum
 
     sensor_tag = "" if args.sensor is None else f"_{args.sensor}"
-    name = f"{world}_{seed}_maplog{sensor_tag}"
+    name = f"{world}_{seed}_mapping{sensor_tag}"
     tsdf = work / f"{name}_{args.map_source}.tsdf"
     if tsdf.exists():
         return tsdf
@@ -125,7 +126,7 @@ def map_from_log(work: Path, world: str, seed: int, args) -> Path:
     route, duration_s = MAPPING_ROUTES[world]
     if not log.exists():
         mcl3d("simulate", world, "-o", log, "--trajectory", route, "--duration", duration_s,
-              "--seed", seed + 1000, *sensor, "--force")
+              "--seed", seed + 1000, "--world-seed", seed, *sensor, "--force")
     poses = []
     if args.map_source == "odometry-log":
         mcl3d("odometry", log, "-o", work / f"{name}_odometry", "--backend", "cpu", "--force")
