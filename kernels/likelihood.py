@@ -31,7 +31,15 @@ import numpy as np
 import taichi as ti
 
 from mcl3d.kernels.se3 import quat_to_mat
-from mcl3d.kernels.tsdf_lookup import BLOCK, FREE, TILE, TILE_SHIFT, tile_cell, tile_id
+from mcl3d.kernels.tsdf_lookup import (
+    BLOCK,
+    FREE,
+    TILE,
+    TILE_SHIFT,
+    tile_cell,
+    tile_entry,
+    tile_id,
+)
 
 vec3 = ti.math.vec3
 ivec3 = ti.math.ivec3
@@ -136,7 +144,7 @@ def slot_of(m: ti.template(), slot: ti.template(), c: ivec3) -> ti.i32:
     if ti.static(len(slot.shape) == 3):
         s = slot[cc[0], cc[1], cc[2]]
     else:
-        ts = ti.max(m.tile_of[cc[0] >> TILE_SHIFT, cc[1] >> TILE_SHIFT, cc[2] >> TILE_SHIFT], 0)
+        ts = ti.max(tile_entry(m, cc), 0)
         s = slot[ts, cc[0] & (TILE - 1), cc[1] & (TILE - 1), cc[2] & (TILE - 1)]
     return ti.select(inside, s, m.capacity + 1)
 

@@ -14,10 +14,9 @@ from mcl3d.kernels.tsdf_band import (
     allocate_patch,
     band_samples,
     flush_slots,
-    max_band_samples,
     point_band,
 )
-from mcl3d.kernels.tsdf_lookup import UNKNOWN, ivec3, vec3
+from mcl3d.kernels.tsdf_lookup import UNKNOWN, geometry, ivec3, vec3
 from mcl3d.kernels.voxel_normals import k_nearest, plane_normal
 
 
@@ -50,7 +49,7 @@ def points_allocate_band(m: ti.template(), pts: ti.types.ndarray(dtype=vec3, ndi
     """Allocate the blocks of each point's band patch (exactly those points_fuse_band
     visits). Idempotent: the host relaunches it while tiles were missed."""
     for i in range(n):
-        allocate_patch(m, pts[i], nrm[i], steps[i], behind_m)
+        allocate_patch(m, geometry(m), pts[i], nrm[i], steps[i], behind_m)
 
 
 @ti.kernel
@@ -67,15 +66,16 @@ def points_fuse_band(m: ti.template(), pts: ti.types.ndarray(dtype=vec3, ndim=1)
     up to f32 rounding.
     """
     k_w = -0.5 / (sigma_weight_m * sigma_weight_m)
-    n_s = band_samples(m, behind_m)
-    n_max = ti.static(max_band_samples(m))
+    n_max = ti.static(m.band_slots)
     for run in range((n + run_length - 1) // run_length):
+        geo = geometry(m)  # once per run: the map's geometry is read at run time
+        n_s = band_samples(geo, behind_m)
         slot_g = ti.Matrix.zero(ti.i32, n_max, 3)
         slot_wd = ti.Vector.zero(ti.f32, n_max)
         slot_w = ti.Vector.zero(ti.f32, n_max)
         cb = ivec3(-(1 << 30))
         bid = UNKNOWN
         for i in range(run * run_length, ti.min(n, (run + 1) * run_length)):
-            point_band(m, pts[i], nrm[i], steps[i], behind_m, k_w, n_s, slot_g, slot_wd,
-                       slot_w, cb, bid)
-        flush_slots(m, slot_g, slot_wd, slot_w)
+            point_band(m, geo, pts[i], nrm[i], steps[i], behind_m, k_w, n_s, slot_g,
+                       slot_wd, slot_w, cb, bid)
+        flush_slots(m, geo, slot_g, slot_wd, slot_w)

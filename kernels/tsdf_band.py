@@ -8,11 +8,11 @@ from mcl3d.kernels.tsdf_blocks import allocate_block
 from mcl3d.kernels.tsdf_lookup import (
     SUM_ONE,
     UNKNOWN,
-    block_id,
+    cell_at,
+    center_at,
+    grid_at,
     ivec3,
     vec3,
-    voxel_center,
-    world_to_grid,
 )
 
 MAX_FOOTPRINT_STEPS = 4  # a scan point's band patch is at most 4 x 4 voxels (5 x 5 columns)
@@ -47,13 +47,14 @@ def add_fixed(total: ti.template(), x: ti.f32):
 
 
 @ti.func
-def add_sums(m: ti.template(), b: ti.i32, g: ivec3, wd: ti.f32, w: ti.f32):
+def add_sums(m: ti.template(), geo: ti.template(), b: ti.i32, g: ivec3, wd: ti.f32,
+             w: ti.f32):
     """Add summed observations (sum of w*d, sum of w) to voxel g of pool block b: as
     fixed-point numbers (see tsdf_lookup) whose totals do not depend on the order in which
     threads add, or on Vulkan as floats into the pool (m.exact_sums, see maps.tsdf)."""
     i, j, k = g[0] & 7, g[1] & 7, g[2] & 7
     if ti.static(m.exact_sums):
-        add_fixed(m.sum_wd[b, i, j, k], wd * ti.static(1.0 / m.truncation_m))
+        add_fixed(m.sum_wd[b, i, j, k], wd * geo.scale[3])
         add_fixed(m.sum_w[b, i, j, k], w)
     else:
         ti.atomic_add(m.sdf[b, i, j, k], wd)
@@ -61,17 +62,11 @@ def add_sums(m: ti.template(), b: ti.i32, g: ivec3, wd: ti.f32, w: ti.f32):
 
 
 @ti.func
-def accumulate_sums(m: ti.template(), g: ivec3, wd: ti.f32, w: ti.f32):
+def accumulate_sums(m: ti.template(), geo: ti.template(), g: ivec3, wd: ti.f32, w: ti.f32):
     """Add summed observations (sum of w*d, sum of w) to voxel g, if its block exists."""
-    b = block_id(m, g >> 3)
+    b = cell_at(m, geo, g >> 3)
     if b >= 0:
-        add_sums(m, b, g, wd, w)
-
-
-@ti.func
-def accumulate(m: ti.template(), g: ivec3, d: ti.f32, w: ti.f32):
-    """Add one observation (d, w) to the running sums of voxel g, if its block exists."""
-    accumulate_sums(m, g, w * d, w)
+        add_sums(m, geo, b, g, wd, w)
 
 
 # --------------------------------------------------------------------- patch geometry
@@ -96,12 +91,12 @@ def patch_tangents(n: vec3, k: ti.i32):
 
 
 @ti.func
-def footprint_steps(m: ti.template(), r: ti.f32, spacing_rad: ti.f32) -> ti.i32:
+def footprint_steps(geo: ti.template(), r: ti.f32, spacing_rad: ti.f32) -> ti.i32:
     """Half-width k, in half voxels, of the patch a point covers on its surface: half the
     gap to the next ray (r * spacing / 2), so neighbouring rays' patches meet. The patch
     is sampled by (k + 1)^2 columns along the normal, a voxel apart (see column_base)."""
     rho = 0.5 * r * spacing_rad
-    return ti.min(ti.cast(rho / (0.5 * m.voxel_size_m), ti.i32), MAX_FOOTPRINT_STEPS)
+    return ti.min(ti.cast(rho / (0.5 * geo.scale[0]), ti.i32), MAX_FOOTPRINT_STEPS)
 
 
 @ti.func
@@ -121,20 +116,22 @@ def patch_block(pg: vec3, e1: vec3, e2: vec3, nv: vec3, k: ti.i32, a: ti.i32, b:
 
 
 @ti.func
-def band_samples(m: ti.template(), behind_m: ti.f32) -> ti.i32:
+def band_samples(geo: ti.template(), behind_m: ti.f32) -> ti.i32:
     """Samples along the normal, a voxel apart, from -behind_m to +truncation (both ends)."""
-    return ti.cast(ti.ceil((behind_m + m.truncation_m) / m.voxel_size_m), ti.i32) + 1
+    return ti.cast(ti.ceil((behind_m + geo.scale[2]) / geo.scale[0]), ti.i32) + 1
 
 
-def max_band_samples(m) -> int:
+def max_band_samples(truncation_m: float, voxel_size_m: float) -> int:
     """An upper bound of band_samples for any behind_m <= truncation (f32 ceil included),
-    for ti.static."""
-    return int(2.0 * m.truncation_m / m.voxel_size_m) + 3
+    for ti.static (maps.tsdf keeps it as `band_slots`: it depends on the truncation in
+    voxels alone, so maps of any size share the kernels)."""
+    return int(2.0 * truncation_m / voxel_size_m) + 3
 
 
 # ---------------------------------------------------------------- allocation and fusion
 @ti.func
-def allocate_patch(m: ti.template(), p: vec3, nr: vec3, k: ti.i32, behind_m: ti.f32):
+def allocate_patch(m: ti.template(), geo: ti.template(), p: vec3, nr: vec3, k: ti.i32,
+                   behind_m: ti.f32):
     """Allocate the blocks of the band patch of half-width k around world point p.
 
     The samples lie in the parallelepiped of the 8 corner samples (the 4 corner columns at
@@ -144,11 +141,12 @@ def allocate_patch(m: ti.template(), p: vec3, nr: vec3, k: ti.i32, behind_m: ti.
     face-adjacent blocks covers just those two; only the rest walk all their samples.
     """
     e1, e2 = patch_tangents(nr, k)
-    pg = world_to_grid(m, p)  # the same sample positions as scan_fuse
-    nv = nr * (1.0 / m.voxel_size_m)
-    n_s = band_samples(m, behind_m)
+    pg = grid_at(geo, p)  # the same sample positions as scan_fuse
+    vox = geo.scale[0]
+    nv = nr * geo.scale[1]
+    n_s = band_samples(geo, behind_m)
     s_first = -behind_m
-    s_last = ti.min(-behind_m + (n_s - 1) * m.voxel_size_m, m.truncation_m)
+    s_last = ti.min(-behind_m + (n_s - 1) * vox, geo.scale[2])
     by_corners = False
     if k > 0:
         lo = ivec3(1 << 30)
@@ -173,33 +171,34 @@ def allocate_patch(m: ti.template(), p: vec3, nr: vec3, k: ti.i32, behind_m: ti.
                 by_corners = True
                 for c in ti.static(range(8)):
                     if (mask >> c) & 1:
-                        allocate_block(m, lo[0] + (c >> 2), lo[1] + ((c >> 1) & 1),
+                        allocate_block(m, geo, lo[0] + (c >> 2), lo[1] + ((c >> 1) & 1),
                                        lo[2] + (c & 1))
     if not by_corners:
         for a, b in ti.ndrange(k + 1, k + 1):
             first = patch_block(pg, e1, e2, nv, k, a, b, s_first)
             last = patch_block(pg, e1, e2, nv, k, a, b, s_last)
-            allocate_block(m, first[0], first[1], first[2])
+            allocate_block(m, geo, first[0], first[1], first[2])
             if ti.abs(last - first).sum() == 1:
-                allocate_block(m, last[0], last[1], last[2])
+                allocate_block(m, geo, last[0], last[1], last[2])
             elif (last != first).any():
                 base = column_base(pg, e1, e2, k, a, b)
                 prev = first
                 for j in range(1, n_s):
-                    sj = ti.min(-behind_m + j * m.voxel_size_m, m.truncation_m)
+                    sj = ti.min(-behind_m + j * vox, geo.scale[2])
                     g = ti.cast(ti.floor(base + sj * nv), ti.i32) >> 3
                     if (g != prev).any():
-                        allocate_block(m, g[0], g[1], g[2])
+                        allocate_block(m, geo, g[0], g[1], g[2])
                         prev = g
 
 
 @ti.func
-def band_patch(m: ti.template(), p: vec3, nr: vec3, k: ti.i32, behind_m: ti.f32,
-               k_w: ti.f32, e1: vec3, e2: vec3):
+def band_patch(m: ti.template(), geo: ti.template(), p: vec3, nr: vec3, k: ti.i32,
+               behind_m: ti.f32, k_w: ti.f32, e1: vec3, e2: vec3):
     """The band of a point whose patch has more than one column, straight into the map."""
-    trunc = m.truncation_m
-    pg = world_to_grid(m, p)  # sample (a, b, j) is at column_base(a, b) + s_j nv
-    nv = nr * (1.0 / m.voxel_size_m)
+    trunc = geo.scale[2]
+    vox = geo.scale[0]
+    pg = grid_at(geo, p)  # sample (a, b, j) is at column_base(a, b) + s_j nv
+    nv = nr * geo.scale[1]
     cb = ivec3(-(1 << 30))  # the block of the last sample and its id: runs of samples
     bid = UNKNOWN  # in one block look it up once
     for a, b in ti.ndrange(k + 1, k + 1):
@@ -207,8 +206,8 @@ def band_patch(m: ti.template(), p: vec3, nr: vec3, k: ti.i32, behind_m: ti.f32,
         base_a = column_base(pg, e1, e2, k, a - 1, b)  # the columns before it along a, b
         base_b = column_base(pg, e1, e2, k, a, b - 1)
         last = ivec3(-(1 << 30))
-        for j in range(band_samples(m, behind_m)):
-            s = ti.min(-behind_m + j * m.voxel_size_m, trunc)
+        for j in range(band_samples(geo, behind_m)):
+            s = ti.min(-behind_m + j * vox, trunc)
             g = ti.cast(ti.floor(base + s * nv), ti.i32)
             if (g != last).any():
                 last = g
@@ -220,57 +219,61 @@ def band_patch(m: ti.template(), p: vec3, nr: vec3, k: ti.i32, behind_m: ti.f32,
                 if b > 0 and not seen:
                     seen = (ti.cast(ti.floor(base_b + s * nv), ti.i32) == g).all()
                 if not seen:
-                    v = voxel_center(m, g) - p
+                    v = center_at(geo, g) - p
                     d = v.dot(nr)
                     if -behind_m <= d <= trunc:
                         if ((g >> 3) != cb).any():
                             cb = g >> 3
-                            bid = block_id(m, cb)
+                            bid = cell_at(m, geo, cb)
                         if bid >= 0:
                             w = exp_nonpositive(k_w * v.dot(v))
-                            add_sums(m, bid, g, w * d, w)
+                            add_sums(m, geo, bid, g, w * d, w)
 
 
 @ti.func
-def point_band(m: ti.template(), p: vec3, nr: vec3, k: ti.i32, behind_m: ti.f32, k_w: ti.f32,
-               n_s: ti.i32, slot_g: ti.template(), slot_wd: ti.template(),
-               slot_w: ti.template(), cb: ti.template(), bid: ti.template()):
+def point_band(m: ti.template(), geo: ti.template(), p: vec3, nr: vec3, k: ti.i32,
+               behind_m: ti.f32, k_w: ti.f32, n_s: ti.i32, slot_g: ti.template(),
+               slot_wd: ti.template(), slot_w: ti.template(), cb: ti.template(),
+               bid: ti.template()):
     """A point's band of half-width k: a patch straight into the map, or a one-column band
     into the run's slots (column_into_slots), flushed by the caller at the run's end."""
     if k > 0:
         e1, e2 = tangent_basis(nr)
-        band_patch(m, p, nr, k, behind_m, k_w, e1, e2)
+        band_patch(m, geo, p, nr, k, behind_m, k_w, e1, e2)
     else:
-        column_into_slots(m, p, nr, behind_m, k_w, n_s, slot_g, slot_wd, slot_w, cb, bid)
+        column_into_slots(m, geo, p, nr, behind_m, k_w, n_s, slot_g, slot_wd, slot_w, cb,
+                          bid)
 
 
 # --------------------------------------------------- one-column bands of a run of points
 @ti.func
-def column_into_slots(m: ti.template(), p: vec3, nr: vec3, behind_m: ti.f32, k_w: ti.f32,
-                      n_s: ti.i32, slot_g: ti.template(), slot_wd: ti.template(),
-                      slot_w: ti.template(), cb: ti.template(), bid: ti.template()):
+def column_into_slots(m: ti.template(), geo: ti.template(), p: vec3, nr: vec3,
+                      behind_m: ti.f32, k_w: ti.f32, n_s: ti.i32, slot_g: ti.template(),
+                      slot_wd: ti.template(), slot_w: ti.template(), cb: ti.template(),
+                      bid: ti.template()):
     """The one-column band of world point p added to a run's slots (registers): slot j holds
     the voxel of depth sample j (slot_g[j]) and its sums (slot_wd[j], slot_w[j]); a slot
     goes to the map (flush_slot) when this point's sample j leaves its voxel. cb, bid: the
     block last flushed and its pool id, looked up again only when the block changes."""
-    trunc = m.truncation_m
-    pg = world_to_grid(m, p)
-    nv = nr * (1.0 / m.voxel_size_m)
+    trunc = geo.scale[2]
+    vox = geo.scale[0]
+    pg = grid_at(geo, p)
+    nv = nr * geo.scale[1]
     last = ivec3(-(1 << 30))
-    for j in ti.static(range(max_band_samples(m))):
+    for j in ti.static(range(m.band_slots)):
         if j < n_s:
-            s = ti.min(-behind_m + j * m.voxel_size_m, trunc)
+            s = ti.min(-behind_m + j * vox, trunc)
             g = ti.cast(ti.floor(pg + s * nv), ti.i32)
             if (g != last).any():
                 last = g
-                v = voxel_center(m, g) - p
+                v = center_at(geo, g) - p
                 d = v.dot(nr)
                 if -behind_m <= d <= trunc:
                     w = exp_nonpositive(k_w * v.dot(v))
                     same = (slot_g[j, 0] == g[0] and slot_g[j, 1] == g[1]
                             and slot_g[j, 2] == g[2])
                     if slot_w[j] > 0.0 and not same:
-                        flush_slot(m, j, slot_g, slot_wd, slot_w, cb, bid)
+                        flush_slot(m, geo, j, slot_g, slot_wd, slot_w, cb, bid)
                     for a in ti.static(range(3)):
                         slot_g[j, a] = g[a]
                     slot_wd[j] += w * d
@@ -278,7 +281,7 @@ def column_into_slots(m: ti.template(), p: vec3, nr: vec3, behind_m: ti.f32, k_w
 
 
 @ti.func
-def flush_slot(m: ti.template(), j: ti.template(), slot_g: ti.template(),
+def flush_slot(m: ti.template(), geo: ti.template(), j: ti.template(), slot_g: ti.template(),
                slot_wd: ti.template(), slot_w: ti.template(), cb: ti.template(),
                bid: ti.template()):
     """Add slot j's sums to its voxel and empty it (j is a compile-time index, so the slots
@@ -286,18 +289,18 @@ def flush_slot(m: ti.template(), j: ti.template(), slot_g: ti.template(),
     gs = ivec3(slot_g[j, 0], slot_g[j, 1], slot_g[j, 2])
     if ((gs >> 3) != cb).any():
         cb = gs >> 3
-        bid = block_id(m, cb)
+        bid = cell_at(m, geo, cb)
     if bid >= 0:
-        add_sums(m, bid, gs, slot_wd[j], slot_w[j])
+        add_sums(m, geo, bid, gs, slot_wd[j], slot_w[j])
     slot_w[j] = 0.0
     slot_wd[j] = 0.0
 
 
 @ti.func
-def flush_slots(m: ti.template(), slot_g: ti.template(), slot_wd: ti.template(),
-                slot_w: ti.template()):
+def flush_slots(m: ti.template(), geo: ti.template(), slot_g: ti.template(),
+                slot_wd: ti.template(), slot_w: ti.template()):
     """Add every slot still holding sums to its voxel: the end of a run."""
-    for j in ti.static(range(max_band_samples(m))):
+    for j in ti.static(range(m.band_slots)):
         if slot_w[j] > 0.0:
-            accumulate_sums(m, ivec3(slot_g[j, 0], slot_g[j, 1], slot_g[j, 2]),
+            accumulate_sums(m, geo, ivec3(slot_g[j, 0], slot_g[j, 1], slot_g[j, 2]),
                             slot_wd[j], slot_w[j])

@@ -19,42 +19,48 @@ from mcl3d.kernels.tsdf_lookup import (
     TILE_OVERFLOW,
     TILE_SHIFT,
     UNKNOWN,
+    block_capacity,
+    bounds_hold,
     coarse_cell,
     fixed_value,
-    in_bounds,
+    geometry,
     ivec3,
     set_tile_cell,
+    tile_capacity,
     tile_cell,
-    tile_id,
+    tile_id_at,
+    top_slot,
+    vec3,
 )
 
 
 @ti.func
-def claim_tile(m: ti.template(), bc: ivec3) -> ti.i32:
+def claim_tile(m: ti.template(), geo: ti.template(), bc: ivec3) -> ti.i32:
     """The tile of coarse cell bc (inside the bounds), claimed when it has none: its id, or -1
     when another thread of this launch claimed it (a miss, counted) or the pool is full.
 
     Fresh tiles need no init: their cells hold zeros, UNKNOWN (`tsdf_lookup`). Past the
     tile capacity `tile_count` still counts, so the host learns how many were needed.
     """
-    t = tile_id(m, bc)
-    tc = bc >> TILE_SHIFT
+    t = tile_id_at(m, geo, bc)
     if t == -1:  # no tile yet (-2: the tile pool overflowed)
-        if ti.atomic_or(m.tile_flag[tc[0], tc[1], tc[2]], 1) == 0:
+        tc = bc >> TILE_SHIFT
+        top = top_slot(geo, tc)
+        if ti.atomic_or(m.tile_flag[top], 1) == 0:
             nid = ti.atomic_add(m.tile_count[None], 1)
-            if nid < m.tile_capacity:
+            if nid < tile_capacity(m):
                 m.tile_coord[nid] = tc
-                m.tile_of[tc[0], tc[1], tc[2]] = nid + 1
+                m.tile_of[top] = nid + 1
                 t = nid
             else:
-                m.tile_of[tc[0], tc[1], tc[2]] = TILE_OVERFLOW
+                m.tile_of[top] = TILE_OVERFLOW
         else:
             ti.atomic_add(m.tile_misses[None], 1)
     return t
 
 
 @ti.func
-def allocate_block(m: ti.template(), bx: ti.i32, by: ti.i32, bz: ti.i32):
+def allocate_block(m: ti.template(), geo: ti.template(), bx: ti.i32, by: ti.i32, bz: ti.i32):
     """Give block (bx, by, bz) a pool slot; exactly one thread wins (atomic flag + counter).
 
     Readers must look at the coarse cell in a later launch. Past capacity the counter still
@@ -63,8 +69,8 @@ def allocate_block(m: ti.template(), bx: ti.i32, by: ti.i32, bz: ti.i32):
     cell whose tile this launch could not use yet (a miss) is left for the next launch.
     """
     bc = ivec3(bx, by, bz)
-    if in_bounds(m, bc):
-        t = claim_tile(m, bc)
+    if bounds_hold(geo, bc):
+        t = claim_tile(m, geo, bc)
         if t >= 0:
             c = tile_cell(m, t, bc)
             # nested ifs and no `in`: Taichi does not short-circuit `and` nor support `in`
@@ -72,7 +78,7 @@ def allocate_block(m: ti.template(), bx: ti.i32, by: ti.i32, bz: ti.i32):
                 if ti.atomic_or(m.cell_flag[t, bx & (TILE - 1), by & (TILE - 1),
                                             bz & (TILE - 1)], 1) == 0:
                     nid = ti.atomic_add(m.block_count[None], 1)
-                    if nid < m.capacity:
+                    if nid < block_capacity(m):
                         m.block_coord[nid] = bc
                         m.block_free[nid] = 1 if c == FREE else 0
                         if ti.static(m.writable):  # noqa: SIM102 (compile-time if)
@@ -85,15 +91,15 @@ def allocate_block(m: ti.template(), bx: ti.i32, by: ti.i32, bz: ti.i32):
 
 
 @ti.func
-def mark_free(m: ti.template(), bc: ivec3, claim: ti.template()):
+def mark_free(m: ti.template(), geo: ti.template(), bc: ivec3, claim: ti.template()):
     """Coarse cell bc (inside the bounds) UNKNOWN -> FREE. With `claim` a missing tile is
     claimed (a miss when another thread of the launch holds it), else such a cell stays
     unknown (the carving pass: its tiles were claimed by the allocation pass)."""
     t = -1
     if ti.static(claim):  # noqa: SIM108 (compile-time if)
-        t = claim_tile(m, bc)
+        t = claim_tile(m, geo, bc)
     else:
-        t = tile_id(m, bc)
+        t = tile_id_at(m, geo, bc)
     if t >= 0:  # noqa: SIM102
         if tile_cell(m, t, bc) == UNKNOWN:
             set_tile_cell(m, t, bc, FREE)
@@ -108,17 +114,22 @@ def clear_sums(m: ti.template(), b: ti.i32, i: ti.i32, j: ti.i32, h: ti.i32):
 
 
 @ti.kernel
+def set_geometry(m: ti.template(), origin_m: vec3, dims: ivec3, top: ivec3, blocks: ti.i32,
+                 tiles: ti.i32):
+    """The map's geometry into the 0-d fields kernels read it from (tsdf_lookup): origin,
+    coarse and top-grid dims, and the blocks and tiles that may be used."""
+    m.geo_origin[None] = origin_m
+    m.geo_dims[None] = dims
+    m.geo_top[None] = top
+    m.geo_caps[None] = ti.math.ivec2(blocks, tiles)
+
+
+@ti.kernel
 def zero_top(m: ti.template(), start: ti.i32, count: ti.i32):
     """No tile (and no claim) over flat top-grid cells [start, start + count)."""
-    ny = m.top_dims[1]
-    nz = m.top_dims[2]
     for k in range(count):
-        i = start + k
-        x = i // (ny * nz)
-        y = (i // nz) % ny
-        z = i % nz
-        m.tile_of[x, y, z] = 0
-        m.tile_flag[x, y, z] = 0
+        m.tile_of[start + k] = 0
+        m.tile_flag[start + k] = 0
 
 
 @ti.kernel
@@ -188,7 +199,7 @@ def allocate_coords(m: ti.template(), coords: ti.types.ndarray(dtype=ivec3, ndim
                     n: ti.i32):
     for i in range(n):
         c = coords[i]
-        allocate_block(m, c[0], c[1], c[2])
+        allocate_block(m, geometry(m), c[0], c[1], c[2])
 
 
 @ti.kernel
@@ -197,8 +208,9 @@ def mark_free_coords(m: ti.template(), coords: ti.types.ndarray(dtype=ivec3, ndi
     """Blocks known to be free of surfaces: UNKNOWN -> FREE (allocated blocks stay)."""
     for i in range(n):
         c = coords[i]
-        if in_bounds(m, c):
-            mark_free(m, c, True)
+        geo = geometry(m)
+        if bounds_hold(geo, c):
+            mark_free(m, geo, c, True)
 
 
 @ti.kernel

@@ -9,12 +9,12 @@ from mcl3d.kernels.tsdf_lookup import (
     BLOCK,
     TILE,
     UNKNOWN,
-    coarse_cell,
-    in_bounds,
-    in_grid,
+    bounds_hold,
+    cell_at,
+    grid_at,
+    grid_holds,
     ivec3,
     vec3,
-    world_to_grid,
 )
 
 
@@ -34,7 +34,8 @@ def lowest_bit(i: ti.i32) -> ti.i32:
 
 
 @ti.func
-def carve_ray(m: ti.template(), a: vec3, u: vec3, length: ti.f32, stop_after: ti.f32):
+def carve_ray(m: ti.template(), geo: ti.template(), a: vec3, u: vec3, length: ti.f32,
+              stop_after: ti.f32):
     """Free space along a + s u, s in [0, length): unallocated blocks become FREE as a
     whole, voxels of allocated blocks count a hit each, sampled a voxel apart; past
     stop_after the walk ends in the first unallocated block it meets. Blocks become FREE
@@ -47,9 +48,9 @@ def carve_ray(m: ti.template(), a: vec3, u: vec3, length: ti.f32, stop_after: ti
     divisions or floors per block); on reaching an allocated block the ray resumes just
     past its face.
     """
-    vox = m.voxel_size_m
-    g0 = world_to_grid(m, a)  # the ray in voxel units: g0 + s * ug
-    ug = u * (1.0 / vox)
+    vox = geo.scale[0]
+    g0 = grid_at(geo, a)  # the ray in voxel units: g0 + s * ug
+    ug = u * geo.scale[1]
     inv = vec3(0.0)  # ray parameter per voxel along each axis
     edge = ivec3(0)  # 1: leaves a block through its upper face, 0: its lower face
     step = ivec3(0)  # -1, 0, +1: how the block index changes along each axis
@@ -66,11 +67,11 @@ def carve_ray(m: ti.template(), a: vec3, u: vec3, length: ti.f32, stop_after: ti
     s = 0.0
     while s < end:
         g = ti.cast(ti.floor(g0 + s * ug), ti.i32)
-        if not in_grid(m, g):
+        if not grid_holds(geo, g):
             s += BLOCK * vox
         else:
             bc = g >> 3
-            b = coarse_cell(m, bc)
+            b = cell_at(m, geo, bc)
             if b >= 0:
                 if (g != last).any():
                     accumulate_free(m, b, g)
@@ -86,7 +87,7 @@ def carve_ray(m: ti.template(), a: vec3, u: vec3, length: ti.f32, stop_after: ti
                         t[k] = (face[k] - g0[k]) * inv[k]
                 while True:
                     if b == UNKNOWN:
-                        mark_free(m, bc, False)
+                        mark_free(m, geo, bc, False)
                     axis = 0
                     s_exit = t[0]
                     if t[1] < s_exit:
@@ -102,41 +103,41 @@ def carve_ray(m: ti.template(), a: vec3, u: vec3, length: ti.f32, stop_after: ti
                         if axis == k:
                             bc[k] += step[k]
                             t[k] += BLOCK * ti.abs(inv[k])
-                    if not in_bounds(m, bc):
+                    if not bounds_hold(geo, bc):
                         break
-                    b = coarse_cell(m, bc)
+                    b = cell_at(m, geo, bc)
                     if b >= 0:
                         break
 
 
 @ti.func
-def dense_range(m: ti.template(), spacing_rad: ti.f32) -> ti.f32:
+def dense_range(geo: ti.template(), spacing_rad: ti.f32) -> ti.f32:
     """The range at which neighbouring rays are half a voxel apart (0 without a spacing)."""
     s_dense = 0.0
     if spacing_rad > 0.0:
-        s_dense = 0.5 * m.voxel_size_m / spacing_rad
+        s_dense = 0.5 * geo.scale[0] / spacing_rad
     return s_dense
 
 
 @ti.func
-def carve_in_front(m: ti.template(), i: ti.i32, o: vec3, u: vec3, r: ti.f32, c: ti.f32,
-                   s_dense: ti.f32):
+def carve_in_front(m: ti.template(), geo: ti.template(), i: ti.i32, o: vec3, u: vec3, r: ti.f32,
+                   c: ti.f32, s_dense: ti.f32):
     """Carve ray i of a scan (sensor o, unit direction u, range r, |cos incidence| c) from
     where it comes within truncation of its surface plane back toward the sensor. Near the
     sensor only a subset of the rays carves: ray i counts voxels from s_dense / lowbit(i)
     on and walks unallocated blocks from twice that on (see tsdf_fusion.scan_fuse)."""
-    s_free = r - m.truncation_m / c
+    s_free = r - geo.scale[2] / c
     s_voxels = s_dense / ti.cast(lowest_bit(i), ti.f32)
-    carve_ray(m, o + s_free * u, -u, s_free - s_voxels, s_free - 2.0 * s_voxels)
+    carve_ray(m, geo, o + s_free * u, -u, s_free - s_voxels, s_free - 2.0 * s_voxels)
 
 
 @ti.func
-def claim_tiles_along(m: ti.template(), a: vec3, u: vec3, length: ti.f32):
+def claim_tiles_along(m: ti.template(), geo: ti.template(), a: vec3, u: vec3, length: ti.f32):
     """Claim the tiles of the coarse index that the segment a + s u, s in [0, length]
     crosses (a 3D DDA over tiles), so that carving, a later launch, finds them."""
     tile_vox = ti.static(TILE * BLOCK)
-    g0 = world_to_grid(m, a) * (1.0 / tile_vox)  # the ray in tile units: g0 + s * ut
-    ut = u * (1.0 / (m.voxel_size_m * tile_vox))
+    g0 = grid_at(geo, a) * (1.0 / tile_vox)  # the ray in tile units: g0 + s * ut
+    ut = u * (geo.scale[1] * (1.0 / tile_vox))
     tc = ti.cast(ti.floor(g0), ti.i32)
     t = vec3(BIG)  # ray parameter of the next tile face along each axis
     dt = vec3(BIG)
@@ -153,8 +154,8 @@ def claim_tiles_along(m: ti.template(), a: vec3, u: vec3, length: ti.f32):
     s = 0.0
     while s <= length:
         bc = tc * TILE
-        if in_bounds(m, bc):
-            claim_tile(m, bc)
+        if bounds_hold(geo, bc):
+            claim_tile(m, geo, bc)
         axis = 0
         if t[1] < t[axis]:
             axis = 1
@@ -168,13 +169,13 @@ def claim_tiles_along(m: ti.template(), a: vec3, u: vec3, length: ti.f32):
 
 
 @ti.func
-def claim_carve_tiles(m: ti.template(), i: ti.i32, o: vec3, u: vec3, r: ti.f32, c: ti.f32,
-                      s_dense: ti.f32):
+def claim_carve_tiles(m: ti.template(), geo: ti.template(), i: ti.i32, o: vec3, u: vec3,
+                      r: ti.f32, c: ti.f32, s_dense: ti.f32):
     """The tiles `carve_in_front` may mark FREE blocks in (the same ray, up to where its
     walk of unallocated blocks stops), claimed in the allocation pass; a block's margin
     past the stop covers the walk's last step."""
-    s_free = r - m.truncation_m / c
+    s_free = r - geo.scale[2] / c
     s_voxels = s_dense / ti.cast(lowest_bit(i), ti.f32)
     stop = ti.min(s_free - s_voxels, s_free - 2.0 * s_voxels)
     if stop >= 0.0:
-        claim_tiles_along(m, o + s_free * u, -u, stop + BLOCK * m.voxel_size_m)
+        claim_tiles_along(m, geo, o + s_free * u, -u, stop + BLOCK * geo.scale[0])

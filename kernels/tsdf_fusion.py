@@ -13,7 +13,6 @@ from mcl3d.kernels.tsdf_band import (
     band_samples,
     flush_slots,
     footprint_steps,
-    max_band_samples,
     point_band,
 )
 from mcl3d.kernels.tsdf_blocks import clear_sums
@@ -22,10 +21,11 @@ from mcl3d.kernels.tsdf_lookup import (
     BLOCK,
     UNKNOWN,
     fixed_value,
+    geometry,
     ivec3,
     vec3,
     vec4,
-    voxel_dw,
+    voxel_dw_at,
 )
 
 
@@ -98,11 +98,12 @@ def scan_allocate(m: ti.template(), pts: ti.types.ndarray(dtype=vec3, ndim=1),
     FREE blocks in. Idempotent: the host relaunches it while tiles were missed.
     """
     delta = scan_motion(q0, q1)
-    s_dense = dense_range(m, spacing_rad)
     n_runs = (n + run_length - 1) // run_length
     for index in range(spread_length(n_runs, threads)):
         run = spread_item(index, n_runs, threads)
         if run >= 0:
+            geo = geometry(m)
+            s_dense = dense_range(geo, spacing_rad)
             for i in range(run * run_length, ti.min(n, (run + 1) * run_length)):
                 ray_n[i] = vec4(0.0)
                 if point_ok(pts[i], min_range, max_range):
@@ -110,9 +111,10 @@ def scan_allocate(m: ti.template(), pts: ti.types.ndarray(dtype=vec3, ndim=1),
                                                   use_normals)
                     ray_p[i] = vec4(p, r)
                     ray_n[i] = vec4(nr, c)
-                    allocate_patch(m, p, nr, footprint_steps(m, r, spacing_rad), behind_m)
+                    allocate_patch(m, geo, p, nr, footprint_steps(geo, r, spacing_rad),
+                                   behind_m)
                     if ti.static(carve):
-                        claim_carve_tiles(m, i, o, u, r, c, s_dense)
+                        claim_carve_tiles(m, geo, i, o, u, r, c, s_dense)
 
 
 @ti.kernel
@@ -151,26 +153,26 @@ def scan_fuse(m: ti.template(), ray_p: ti.types.ndarray(dtype=vec4, ndim=1),
     threads as in scan_allocate.
     """
     k_w = -0.5 / (sigma_weight_m * sigma_weight_m)
-    n_s = band_samples(m, behind_m)
-    s_dense = dense_range(m, spacing_rad)
     n_runs = (n + run_length - 1) // run_length
     for index in range(spread_length(n_runs, threads)):
         run = spread_item(index, n_runs, threads)
         if run >= 0:
             fuse_run(m, ray_p, ray_n, alpha, run * run_length,
                      ti.min(n, (run + 1) * run_length), t0, t1, spacing_rad, behind_m, carve,
-                     k_w, n_s, s_dense)
+                     k_w)
 
 
 @ti.func
 def fuse_run(m: ti.template(), ray_p: ti.template(), ray_n: ti.template(),
              alpha: ti.template(), first: ti.i32, end: ti.i32, t0: vec3, t1: vec3,
-             spacing_rad: ti.f32, behind_m: ti.f32, carve: ti.template(), k_w: ti.f32,
-             n_s: ti.i32, s_dense: ti.f32):
+             spacing_rad: ti.f32, behind_m: ti.f32, carve: ti.template(), k_w: ti.f32):
     """One thread's run of points [first, end) of scan_fuse: each point carves its ray,
     then fills its band, a patch straight into the map or, for a one-column band, the
     run's slots (kept in registers until the run ends)."""
-    n_max = ti.static(max_band_samples(m))
+    geo = geometry(m)  # once per run: the map's geometry is read at run time
+    n_s = band_samples(geo, behind_m)
+    s_dense = dense_range(geo, spacing_rad)
+    n_max = ti.static(m.band_slots)
     slot_g = ti.Matrix.zero(ti.i32, n_max, 3)
     slot_wd = ti.Vector.zero(ti.f32, n_max)
     slot_w = ti.Vector.zero(ti.f32, n_max)
@@ -185,10 +187,10 @@ def fuse_run(m: ti.template(), ray_p: ti.template(), ray_n: ti.template(),
             o = t0 + alpha[i] * (t1 - t0)  # as ray_setup
             u = (p - o) / ti.max(r, 1e-9)
             if ti.static(carve):
-                carve_in_front(m, i, o, u, r, c, s_dense)
-            point_band(m, p, nr, footprint_steps(m, r, spacing_rad), behind_m, k_w, n_s,
-                       slot_g, slot_wd, slot_w, cb, bid)
-    flush_slots(m, slot_g, slot_wd, slot_w)
+                carve_in_front(m, geo, i, o, u, r, c, s_dense)
+            point_band(m, geo, p, nr, footprint_steps(geo, r, spacing_rad), behind_m, k_w,
+                       n_s, slot_g, slot_wd, slot_w, cb, bid)
+    flush_slots(m, geo, slot_g, slot_wd, slot_w)
 
 
 # ------------------------------------------------------------------- end of a build
@@ -200,16 +202,17 @@ def finalize_blocks(m: ti.template(), start: ti.i32, count: ti.i32):
     rays become free (+truncation) with the negated number of crossings as weight, a mark
     for `refine_free_voxels` (run next, then `unmark_free_voxels`).
     """
+    trunc = m.truncation_m
     for k, i, j, h in ti.ndrange(count, BLOCK, BLOCK, BLOCK):
         b = start + k
         w = ti.cast(m.weight[b, i, j, h], ti.f32)
         wd = ti.cast(m.sdf[b, i, j, h], ti.f32)
         if ti.static(m.exact_sums):
             w = fixed_value(m.sum_w[b, i, j, h])
-            wd = fixed_value(m.sum_wd[b, i, j, h]) * m.truncation_m
-        d = m.truncation_m
+            wd = fixed_value(m.sum_wd[b, i, j, h]) * trunc
+        d = trunc
         if w > 0.0:
-            d = ti.math.clamp(wd / w, -m.truncation_m, m.truncation_m)
+            d = ti.math.clamp(wd / w, -trunc, trunc)
         else:
             w = -m.free_hits[b, i, j, h]
         m.sdf[b, i, j, h] = ti.cast(d, m.sdf.dtype)
@@ -228,21 +231,22 @@ def refine_free_voxels(m: ti.template(), start: ti.i32, count: ti.i32):
     d(v) <= k * voxel + |d(n)| (triangle inequality), so the smallest such bound replaces
     +truncation.
     """
-    radius = ti.static(int(m.truncation_m / m.voxel_size_m + 0.999))
+    radius = ti.static(int(m.truncation_m / m.voxel_size_m + 0.999))  # voxels: no size
     for k, i, j, h in ti.ndrange(count, BLOCK, BLOCK, BLOCK):
         b = start + k
         if m.weight[b, i, j, h] < 0.0:
+            geo = geometry(m)
+            vox = geo.scale[0]
             g = m.block_coord[b] * BLOCK + ivec3(i, j, h)
-            best = m.truncation_m
+            best = geo.scale[2]
             for n in range(27):
                 e = ivec3(n // 9 - 1, (n // 3) % 3 - 1, n % 3 - 1)
                 length = ti.sqrt(ti.cast(e.dot(e), ti.f32))
                 if n != 13:
                     for step in range(1, radius + 1):
-                        dw = voxel_dw(m, g + step * e)
+                        dw = voxel_dw_at(m, geo, g + step * e)
                         if dw[1] > 0.0:
-                            best = ti.min(best, step * length * m.voxel_size_m
-                                          + ti.abs(dw[0]))
+                            best = ti.min(best, step * length * vox + ti.abs(dw[0]))
             m.sdf[b, i, j, h] = ti.cast(best, m.sdf.dtype)
 
 

@@ -3,7 +3,12 @@
 The container owns the Taichi fields (allocated once, from the capacities given) and the
 map's geometry; the kernels that read and write them live in mcl3d.kernels.tsdf_* and take
 the container as a template argument, so lookups compile to plain field reads on every
-backend. Geometry (voxel size, truncation, origin, bounds) is fixed at construction.
+backend. Geometry (voxel size, truncation, origin, bounds) is fixed at construction. The
+origin and bounds are held in 0-d fields that kernels read at run time, and a writable
+map's fields come in power-of-two sizes (`field_slots`): Taichi's offline cache keys a
+kernel on its IR and the shapes of the fields it touches, so a build of a map of another
+size or origin (same voxel size and truncation, compile-time constants) reuses the fusion
+kernels compiled by an earlier one (~25 s on 2 cores) instead of compiling them again.
 
 The coarse index (one cell per 8³-voxel block: its pool id, or unknown / free) is sparse,
 made of dense fields only, since Vulkan rejects Taichi's pointer and dynamic SNodes: a top
@@ -29,6 +34,7 @@ import taichi as ti
 from mcl3d.core import runtime
 from mcl3d.core.errors import ConfigError, MapError
 from mcl3d.kernels import tsdf_blocks, tsdf_fusion
+from mcl3d.kernels.tsdf_band import max_band_samples
 from mcl3d.kernels.tsdf_lookup import BLOCK, FREE, TILE, UNKNOWN
 from mcl3d.maps.sparse_cells import tiles_of
 
@@ -40,6 +46,20 @@ TOP_CELL_BYTES = 8  # tile id + claim flag
 TILE_BYTES = CELLS_PER_TILE * 8 + 12  # cells + claim flags, and the tile's coordinate
 DENSE_CELL_BYTES = 8  # the former dense coarse grid: block id + allocation flag per cell
 MIN_BUILD_TILES = 1024
+# the smallest field sizes of a writable map (slots of blocks, tiles, top-grid cells): under
+# them maps share one size (a few MiB at most), above them sizes go in powers of two
+MIN_POOL_SLOTS = 1024
+MIN_TILE_SLOTS = MIN_BUILD_TILES
+MIN_TOP_SLOTS = 4096
+
+
+def field_slots(n: int, floor: int, writable: bool) -> int:
+    """Slots a field holds for n entries: a writable map's sizes are rounded up to a power
+    of two (at least `floor`) so that the kernels compiled for one map serve maps of other
+    sizes (Taichi compiles per field shape); a read-only map's are exact (no memory spent:
+    its kernels, the likelihood's, compile per map anyway)."""
+    n = max(int(n), 1)
+    return max(1 << (n - 1).bit_length(), floor) if writable else n
 
 
 @dataclass(frozen=True)
@@ -134,8 +154,9 @@ def _data_oriented(cls):
     """ti.data_oriented without its `__getattribute__` wrapper, which serves kernels defined
     as methods (this class has none) and costs a Python call on every attribute read.
 
-    Taichi keys template-kernel caches of data-oriented objects by weak reference, so a
-    map's compiled kernels die with it and a new map never reuses stale constants.
+    Taichi keys template-kernel instances of data-oriented objects by weak reference, so a
+    map's instances die with it; a new map's come from Taichi's kernel cache when its fields
+    have the shapes of an earlier map's (field_slots) and compile otherwise.
     """
     cls._data_oriented = True
     return cls
@@ -174,19 +195,26 @@ class TsdfMap:
             raise ConfigError("an f16 map is read-only: build in f32, store with f16 "
                               "distances")
         self.writable = bool(writable)
+        # field sizes (>= the capacities, which kernels read at run time)
+        self.pool_slots = field_slots(self.capacity, MIN_POOL_SLOTS, self.writable)
+        self.tile_slots = field_slots(self.tile_capacity, MIN_TILE_SLOTS, self.writable)
+        self.top_slots = field_slots(geometry.n_top_cells, MIN_TOP_SLOTS, self.writable)
+        # band samples a point may have (ti.static in tsdf_band): the truncation in voxels
+        self.band_slots = max_band_samples(self.truncation_m, self.voxel_size_m)
         self.header: dict | None = None  # the file header when loaded from a file
         self.as_sums = False  # True while being built: the pool holds sums, not distances
         dtype = ti.f16 if f16 else ti.f32
         builder = ti.FieldsBuilder()
         self._place_coarse_index(builder)
+        self._place_geometry(builder)
         self.block_count = ti.field(ti.i32)
         builder.place(self.block_count)
         self.block_coord = ti.Vector.field(3, ti.i32)
         self.block_free = ti.field(ti.i32)
-        builder.dense(ti.i, self.capacity).place(self.block_coord, self.block_free)
+        builder.dense(ti.i, self.pool_slots).place(self.block_coord, self.block_free)
         self.sdf = ti.field(dtype)
         self.weight = ti.field(dtype)
-        pool = builder.dense(ti.i, self.capacity).dense(ti.jkl, BLOCK)
+        pool = builder.dense(ti.i, self.pool_slots).dense(ti.jkl, BLOCK)
         pool.place(self.sdf)
         pool.place(self.weight)
         # fixed-point build sums (kernels.tsdf_lookup), except on Vulkan: Mesa's lavapipe
@@ -196,31 +224,40 @@ class TsdfMap:
         self._trees = [self._place_sums()] if self.exact_sums else []
         if writable:  # its own array: the band's distance and weight stay packed
             self.free_hits = ti.field(ti.f32)
-            builder.dense(ti.i, self.capacity).dense(ti.jkl, BLOCK).place(self.free_hits)
+            builder.dense(ti.i, self.pool_slots).dense(ti.jkl, BLOCK).place(self.free_hits)
         self._trees.append(builder.finalize())
         self._used_slots = 0  # pool slots [used, capacity) still hold zeros (never written)
+        tsdf_blocks.set_geometry(self, self.origin_m, self.coarse_dims, self.top_dims,
+                                 self.capacity, self.tile_capacity)
         self.clear()
 
     def _place_coarse_index(self, builder) -> None:
-        """The top grid and the tile pool (tsdf_lookup); ids and claim flags in separate
-        arrays, so that lookups read only ids."""
+        """The top grid (flat, tsdf_lookup.top_index) and the tile pool (tsdf_lookup); ids
+        and claim flags in separate arrays, so that lookups read only ids."""
         self.tile_of, self.tile_flag = ti.field(ti.i32), ti.field(ti.i32)
-        builder.dense(ti.ijk, self.top_dims).place(self.tile_of)
-        builder.dense(ti.ijk, self.top_dims).place(self.tile_flag)
+        builder.dense(ti.i, self.top_slots).place(self.tile_of)
+        builder.dense(ti.i, self.top_slots).place(self.tile_flag)
         self.cells, self.cell_flag = ti.field(ti.i32), ti.field(ti.i32)
-        builder.dense(ti.i, self.tile_capacity).dense(ti.jkl, TILE).place(self.cells)
-        builder.dense(ti.i, self.tile_capacity).dense(ti.jkl, TILE).place(self.cell_flag)
+        builder.dense(ti.i, self.tile_slots).dense(ti.jkl, TILE).place(self.cells)
+        builder.dense(ti.i, self.tile_slots).dense(ti.jkl, TILE).place(self.cell_flag)
         self.tile_coord = ti.Vector.field(3, ti.i32)
-        builder.dense(ti.i, self.tile_capacity).place(self.tile_coord)
+        builder.dense(ti.i, self.tile_slots).place(self.tile_coord)
         self.tile_count, self.tile_misses = ti.field(ti.i32), ti.field(ti.i32)
         builder.place(self.tile_count, self.tile_misses)
+
+    def _place_geometry(self, builder) -> None:
+        """The geometry, read by the kernels at run time (tsdf_lookup; set_geometry)."""
+        self.geo_origin = ti.Vector.field(3, ti.f32)
+        self.geo_dims, self.geo_top = ti.Vector.field(3, ti.i32), ti.Vector.field(3, ti.i32)
+        self.geo_caps = ti.Vector.field(2, ti.i32)
+        builder.place(self.geo_origin, self.geo_dims, self.geo_top, self.geo_caps)
 
     def _place_sums(self):
         """The i64 build sums in a tree of their own, so that they start at byte 0 (8-byte
         atomics need 8-byte alignment; the main tree's i32 fields come first)."""
         builder = ti.FieldsBuilder()
         self.sum_w, self.sum_wd = ti.field(ti.i64), ti.field(ti.i64)
-        builder.dense(ti.i, self.capacity).dense(ti.jkl, BLOCK).place(self.sum_w, self.sum_wd)
+        builder.dense(ti.i, self.pool_slots).dense(ti.jkl, BLOCK).place(self.sum_w, self.sum_wd)
         return builder.finalize()
 
     # ------------------------------------------------------------------ bookkeeping
