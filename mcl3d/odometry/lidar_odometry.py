@@ -3,7 +3,8 @@
 Per scan: predict the pose (IMU preintegration when IMU samples are given, else constant
 velocity), deskew the points to the scan stamp with that motion, downsample and estimate
 covariances, register against the Gaussian voxel maps (two resolutions, GLIM style) of the
-keyframes that hold most of the scan at the predicted pose, in one batched GICP, and insert
+keyframes that hold most of the scan at the predicted pose, in one batched GICP; when the
+registered motion differs from the predicted one, deskew with it and register again; insert
 the scan as a keyframe when less than `keyframe_overlap` of it lands in the existing
 keyframes' voxels. The relative motion's covariance is the inverse GICP Hessian; a Hessian
 with a near-null direction is reported as degenerate (a corridor, a flat field, an empty or
@@ -20,12 +21,11 @@ from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
-from pydantic import Field, model_validator
 
-from mcl3d.core.config import Section
 from mcl3d.core.geometry import se3_exp, se3_inverse, se3_log
 from mcl3d.kernels.scan_grid import MAX_K
 from mcl3d.odometry.imu_preintegration import Preintegrated, gravity_from_static, preintegrate
+from mcl3d.odometry.odometry_config import OdometryConfig
 from mcl3d.registration.batch_gicp import BatchGicp
 from mcl3d.registration.gaussian_voxels import GaussianVoxelMaps
 from mcl3d.registration.preprocess import ScanGrid, deskew, estimate_covariances, voxel_downsample
@@ -34,55 +34,6 @@ LOST_COVARIANCE = 1e6  # variance (rad², m²) of a motion that could not be mea
 MEDIAN_SAMPLE = 2048  # points sampled (at least this many, evenly) for the mid-sweep time
 OVERLAP_SAMPLE = 2048  # points (at least, evenly) that rank the keyframes for registration
 HOLDS_SCAN = 0.5  # a keyframe holding less than this share of the best one's overlap: last
-
-
-class OdometryConfig(Section):
-    voxel_size_m: float = Field(0.25, gt=0, description="downsampling voxel edge (m)")
-    map_voxel_size_m: float | None = Field(None, gt=0, description="finest keyframe voxel "
-                                           "map edge (m), a second level twice as coarse; "
-                                           "None: GLIM's rule from the first scan's median "
-                                           "range, 0.25 m (<= 5 m) to 0.5 m (>= 20 m)")
-    map_levels: int = Field(2, ge=1, le=3, description="voxel map resolutions per keyframe")
-    k_neighbors: int = Field(10, ge=5, description="neighbours for point covariances")
-    min_range_m: float = Field(0.5, ge=0, description="drop points closer than this (m)")
-    max_range_m: float = Field(100.0, gt=0, description="drop points farther than this (m)")
-    keyframe_overlap: float = Field(0.7, gt=0, le=1, description="new keyframe when the "
-                                    "scan's overlap with the keyframes drops below this")
-    max_keyframes: int = Field(10, ge=1, le=64, description="keyframes in the local map "
-                               "(oldest evicted; the overlap test lists them all)")
-    registration_keyframes: int = Field(3, ge=1, description="register against this many "
-                                        "keyframes: those that see most of the scan at the "
-                                        "predicted pose (overlap; the nearest among equals)")
-    max_iterations: int = Field(20, ge=1, description="Gauss-Newton iterations per scan")
-    converged_rotation_deg: float = Field(0.1, gt=0, description="converged when a step "
-                                          "rotates less than this (small_gicp's default)")
-    converged_translation_m: float = Field(1e-3, gt=0, description="... and moves less "
-                                           "than this (small_gicp's default)")
-    deskew: bool = Field(True, description="undo motion within a sweep (per-point times)")
-    use_imu: bool = Field(True, description="predict with IMU preintegration when the log "
-                          "has an IMU")
-    degeneracy_ratio: float = Field(0.006, gt=0, description="degenerate when the weakest "
-                                    "translation direction holds less than this share of the "
-                                    "Hessian's translation information (min eigenvalue / "
-                                    "trace; 0.001-0.003 in a corridor or on a plane, >= 0.015 in "
-                                    "rooms, halls and forests)")
-    rotation_degeneracy_ratio: float = Field(1e-5, gt=0, description="the same for rotation")
-    validate_surfaces: bool = Field(True, description="drop points whose surface faces away "
-                                    "from the keyframe that saw it (GLIM's surface validation)")
-    min_inliers: int = Field(50, ge=6, description="fewer correspondences: registration lost")
-    buckets_per_map: int = Field(1 << 16, description="hash slots per keyframe map level "
-                                 "(a power of two, at least twice max_points)")
-    max_points: int = Field(32768, ge=16, description="most points per downsampled scan "
-                            "(more are thinned evenly)")
-
-    @model_validator(mode="after")
-    def _map_fits(self) -> OdometryConfig:
-        if self.buckets_per_map < 2 * self.max_points:
-            raise ValueError(f"buckets_per_map ({self.buckets_per_map}) must be at least twice "
-                             f"max_points ({self.max_points}) so a keyframe always fits")
-        if self.min_range_m >= self.max_range_m:
-            raise ValueError("min_range_m must be smaller than max_range_m")
-        return self
 
 
 @dataclass
@@ -102,6 +53,7 @@ class OdometryFrame:
     degenerate: bool
     warnings: list[str] = field(default_factory=list)
     wall_ms: float = 0.0  # time `step` took
+    redeskewed: bool = False  # deskewed with the registered motion and registered again
 
 
 def degeneracy(H: np.ndarray, translation_share: float, rotation_ratio: float) -> list[str]:
@@ -129,6 +81,13 @@ def degeneracy(H: np.ndarray, translation_share: float, rotation_ratio: float) -
             out.append(f"degenerate {name}: {measure} {score:.2g} along "
                        f"[{d[0]:.2f}, {d[1]:.2f}, {d[2]:.2f}] (lidar frame)")
     return out
+
+
+def twist_change(xi_a: np.ndarray, xi_b: np.ndarray, span_s: float) -> tuple[float, float]:
+    """How much two body twists (rad/s, m/s; rotation first) differ over `span_s` seconds:
+    (rotation in degrees, translation in metres)."""
+    d = (np.asarray(xi_b) - np.asarray(xi_a)) * span_s
+    return float(np.degrees(np.linalg.norm(d[:3]))), float(np.linalg.norm(d[3:]))
 
 
 def adaptive_voxel_size(points: np.ndarray) -> float:
@@ -209,7 +168,9 @@ class LidarOdometry:
 
         The scan is deskewed to, and registered at, its median point time (mid-sweep): there
         a velocity error of the motion model barely moves the registered pose, so errors do not
-        feed back through the deskewing. The returned pose is moved back to the stamp."""
+        feed back through the deskewing. When the registered motion differs from the predicted
+        one (`_redeskew`), the scan is deskewed with it and registered again. The returned pose
+        is moved back to the stamp along the motion the scan was deskewed with."""
         t_start = time.perf_counter()
         cfg = self.cfg
         imu = imu if cfg.use_imu else None
@@ -219,14 +180,7 @@ class LidarOdometry:
         times = None
         if cfg.deskew and times_s is not None and len(points):
             times = np.asarray(times_s, dtype=np.float64).ravel()
-        t_ref = 0.0
-        if times is not None:
-            # the median over an even sample (MEDIAN_SAMPLE): as good a mid-sweep time
-            stride = max(1, len(points) // MEDIAN_SAMPLE)
-            sample = points[::stride]
-            r2 = (sample * sample).sum(axis=1)  # NaN and inf fail both tests
-            kept = times[::stride][(r2 >= cfg.min_range_m**2) & (r2 <= cfg.max_range_m**2)]
-            t_ref = float(np.median(kept)) if len(kept) else 0.0
+        t_ref, span_s = self._mid_sweep(points, times)
         t_mid = stamp_ns * 1e-9 + t_ref
         if first:
             T_pred, xi, pre = np.eye(4), np.zeros(6), None
@@ -234,7 +188,12 @@ class LidarOdometry:
             T_pred, xi, pre = self._predict(t_mid, imu)
         deskew_times = None if times is None or first else times - t_ref
         num_points = self._preprocess(points, deskew_times, xi)
+        had_keyframes = bool(self.keyframes)
         frame, T_mid = self._register(stamp_ns, T_pred, num_points, first)
+        if deskew_times is not None and had_keyframes:
+            frame, T_mid, xi = self._redeskew(frame, T_mid, xi, t_mid, span_s, points,
+                                              deskew_times)
+        self._insert_if_due(frame, T_mid, first or not had_keyframes)
         frame.T_world_lidar = T_mid @ se3_exp(-t_ref * xi)
         T_prev = frame.T_world_lidar if first else self.last_frame.T_world_lidar
         frame.T_prev_curr = se3_inverse(T_prev) @ frame.T_world_lidar
@@ -244,6 +203,49 @@ class LidarOdometry:
         frame.wall_ms = (time.perf_counter() - t_start) * 1e3
         self.last_frame = frame
         return frame
+
+    def _mid_sweep(self, points: np.ndarray, times: np.ndarray | None) -> tuple[float, float]:
+        """The median point time (s from the stamp) and the sweep's span (s), over an even
+        sample (MEDIAN_SAMPLE) of the points in range: as good, and cheap."""
+        if times is None:
+            return 0.0, 0.0
+        cfg = self.cfg
+        stride = max(1, len(points) // MEDIAN_SAMPLE)
+        sample = points[::stride]
+        r2 = (sample * sample).sum(axis=1)  # NaN and inf fail both tests
+        kept = times[::stride][(r2 >= cfg.min_range_m**2) & (r2 <= cfg.max_range_m**2)]
+        if not len(kept):
+            return 0.0, 0.0
+        return float(np.median(kept)), float(kept.max() - kept.min())
+
+    def _redeskew(self, frame: OdometryFrame, T_mid: np.ndarray, xi: np.ndarray, t_mid: float,
+                  span_s: float, points: np.ndarray, deskew_times: np.ndarray
+                  ) -> tuple[OdometryFrame, np.ndarray, np.ndarray]:
+        """Deskew again with the registered twist (previous mid-sweep pose to this one) and
+        register again from the first result, when that twist turns or moves the sweep more
+        than `redeskew_*` away from the predicted one; returns (frame, mid-sweep pose, twist
+        the scan is deskewed with). A hand-held sensor's nod (paper-forest: 1.5 deg at 1.8 Hz)
+        is mispredicted by constant velocity by 1.6-1.9 deg over a sweep (median, seeds 1-3):
+        a sweep deskewed with that twist is bent, registers tilted, and the tilt feeds the
+        next prediction. A lost or degenerate registration does not measure the twist: kept
+        as it is."""
+        cfg = self.cfg
+        if frame.degenerate or frame.num_inliers < cfg.min_inliers:
+            return frame, T_mid, xi
+        dt = max(t_mid - self.mid_times[-1], 1e-6)
+        xi_reg = se3_log(se3_inverse(self.mid_poses[-1]) @ T_mid) / dt
+        rotation_deg, translation_m = twist_change(xi, xi_reg, span_s)
+        if (rotation_deg <= cfg.redeskew_rotation_deg
+                and translation_m <= cfg.redeskew_translation_m):
+            return frame, T_mid, xi
+        num_points = self._preprocess(points, deskew_times, xi_reg)
+        again, T_again = self._register(frame.stamp_ns, T_mid, num_points, False)
+        if again.num_inliers < cfg.min_inliers:  # the first result stands, with its points
+            self._preprocess(points, deskew_times, xi)
+            frame.warnings.append("registration lost after deskewing again: the first kept")
+            return frame, T_mid, xi
+        again.redeskewed = True
+        return again, T_again, xi_reg
 
     def _preprocess(self, points: np.ndarray, times: np.ndarray | None, xi: np.ndarray) -> int:
         """Range crop, deskew (when `times` are given), downsample and covariances into the
@@ -272,19 +274,13 @@ class LidarOdometry:
     def _register(self, stamp_ns: int, T_pred: np.ndarray, num_points: int,
                   first: bool) -> tuple[OdometryFrame, np.ndarray]:
         """The frame (pose and relative motion filled in by `step`) and the mid-sweep pose;
-        the scan is in the GICP's source pool."""
+        the scan is in the GICP's source pool (a keyframe only once `step` settles the pose)."""
         cfg = self.cfg
         lost = np.eye(6) * LOST_COVARIANCE
         eye = np.eye(4)
         if first or not self.keyframes:
-            frame = OdometryFrame(stamp_ns, eye, eye, np.zeros((6, 6)) if first else lost,
-                                  num_points, 0, 0, first, False, 0.0, False)
-            if num_points >= cfg.min_inliers:
-                self._insert_keyframe(T_pred)
-                frame.keyframe = True
-            else:
-                frame.warnings.append(f"scan has only {num_points} usable points: no keyframe")
-            return frame, T_pred
+            return OdometryFrame(stamp_ns, eye, eye, np.zeros((6, 6)) if first else lost,
+                                 num_points, 0, 0, first, False, 0.0, False), T_pred
         if num_points < cfg.min_inliers:
             return OdometryFrame(stamp_ns, eye, eye, lost, num_points, 0, 0, False, False, 0.0,
                                  True, [f"scan has only {num_points} usable points: pose "
@@ -313,13 +309,24 @@ class LidarOdometry:
             warnings += degeneracy(H, cfg.degeneracy_ratio, cfg.rotation_degeneracy_ratio)
             degenerate = bool(warnings)
             cov = np.linalg.pinv(H) if degenerate else np.linalg.inv(H)
-        frame = OdometryFrame(stamp_ns, eye, eye, cov, num_points, inliers,
-                              int(out.iterations[0]), bool(out.converged[0]), False, overlap,
-                              degenerate, warnings)
-        if overlap < cfg.keyframe_overlap and inliers >= cfg.min_inliers:
-            self._insert_keyframe(T)
-            frame.keyframe = True
-        return frame, T
+        return OdometryFrame(stamp_ns, eye, eye, cov, num_points, inliers,
+                             int(out.iterations[0]), bool(out.converged[0]), False, overlap,
+                             degenerate, warnings), T
+
+    def _insert_if_due(self, frame: OdometryFrame, T_mid: np.ndarray, starts_map: bool
+                       ) -> None:
+        """The scan in the GICP's source pool becomes a keyframe at `T_mid` when it starts the
+        map (enough points) or overlaps the keyframes less than `keyframe_overlap`."""
+        cfg = self.cfg
+        if starts_map:
+            if frame.num_points < cfg.min_inliers:
+                frame.warnings.append(f"scan has only {frame.num_points} usable points: no "
+                                      "keyframe")
+                return
+        elif frame.overlap >= cfg.keyframe_overlap or frame.num_inliers < cfg.min_inliers:
+            return
+        self._insert_keyframe(T_mid)
+        frame.keyframe = True
 
     def _registration_keyframes(self, T_world_lidar: np.ndarray) -> list[tuple]:
         """The `registration_keyframes` nearest keyframes among those that hold at least

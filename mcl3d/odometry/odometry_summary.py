@@ -131,12 +131,14 @@ class OdometrySummary:
     accuracy_error: str | None = None  # why the accuracy could not be computed
     faults: LogFaults = field(default_factory=LogFaults)  # the log's messages dropped
     degenerate_stretches: list[DegenerateStretch] = field(default_factory=list)
+    redeskewed_frames: int = 0  # deskewed with the registered motion and registered again
 
     def as_dict(self) -> dict:
         return {"scans": self.scans, "interrupted": self.interrupted,
                 "keyframes": self.keyframes, "path_length_m": self.path_length_m,
                 "ms_per_frame": self.ms_per_frame.as_dict(),
-                "degenerate_frames": self.degenerate_frames, "notes": self.notes,
+                "degenerate_frames": self.degenerate_frames,
+                "redeskewed_frames": self.redeskewed_frames, "notes": self.notes,
                 "warnings": self.warnings, "num_warnings": self.num_warnings,
                 "evaluation": evaluation_entry(self.accuracy, self.accuracy_error),
                 "faults": self.faults.as_dict(),
@@ -185,7 +187,9 @@ def summary_rows(summary: OdometrySummary, backend: str, output_dir: Path
     rows = [("scans", f"{s.scans} ({s.keyframes} keyframes)"), ("backend", backend),
             ("path length", f"{s.path_length_m:.2f} m"),
             ("ms per frame", f"{ms.mean:.1f} mean, {ms.median:.1f} median"),
-            ("degenerate frames", str(s.degenerate_frames))]
+            ("degenerate frames", str(s.degenerate_frames)),
+            ("deskewed again", f"{s.redeskewed_frames} scans (registered motion off the "
+                               "predicted)")]
     if s.accuracy is not None:
         ev = s.accuracy.evaluation
         rows.append(("ATE (first pose aligned)",

@@ -163,7 +163,8 @@ def _write(outputs: OdometryOutputs, frames: list[OdometryFrame], cfg: OdometryC
                  covariance=np.stack([fr.covariance for fr in frames]),
                  num_inliers=np.array([fr.num_inliers for fr in frames]),
                  degenerate=np.array([fr.degenerate for fr in frames]),
-                 keyframe=np.array([fr.keyframe for fr in frames]))
+                 keyframe=np.array([fr.keyframe for fr in frames]),
+                 redeskewed=np.array([fr.redeskewed for fr in frames]))
     config_io.save(cfg, outputs.config)
     ms = np.array([f.wall_ms for f in frames[1:]] or [frames[0].wall_ms])
     warnings, stretches = run_warnings(frames)
@@ -175,7 +176,8 @@ def _write(outputs: OdometryOutputs, frames: list[OdometryFrame], cfg: OdometryC
         degenerate_frames=int(sum(f.degenerate for f in frames)), notes=feed.notes,
         warnings=warnings[:MAX_LISTED_WARNINGS], num_warnings=len(warnings),
         accuracy=accuracy, accuracy_error=accuracy_error, faults=feed.reader.faults,
-        degenerate_stretches=stretches)
+        degenerate_stretches=stretches,
+        redeskewed_frames=int(sum(f.redeskewed for f in frames)))
     with atomic_open(outputs.summary, "w") as f:
         json.dump(summary.as_dict(), f, indent=2)
     return summary
