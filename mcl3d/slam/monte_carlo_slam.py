@@ -20,7 +20,9 @@ Per scan:
    `keyframes.capacity` keyframes are kept, it replaces the most redundant one
    (mcl3d.slam.keyframe_store), so a run of any length keeps a bounded store;
 6. pruning: particles with a negligible posterior or frame likelihood are replaced by copies
-   of living ones drawn by weight, the weight split between the copies.
+   of living ones drawn by weight, the weight split between the copies; after an elevator
+   ride each height stratum is pruned on its own until one floor's evidence dominates
+   (mcl3d.slam.floor_guard).
 
 Keyframe clouds live once, as Gaussian voxel maps shared by every particle. Choices the
 paper leaves open are documented in docs/slam.md.
@@ -56,6 +58,7 @@ from mcl3d.registration.preprocess import (
     voxel_downsample,
 )
 from mcl3d.slam.elevator import ElevatorRide, in_elevator, open_sectors
+from mcl3d.slam.floor_guard import FloorGuard
 from mcl3d.slam.frame_store import SlamFrame, SlamFrames
 from mcl3d.slam.free_space import FreeSpace
 from mcl3d.slam.keyframe_store import KeyframeBook, slot_to_reuse
@@ -223,6 +226,8 @@ class MonteCarloSlam:
         self._ride: ElevatorRide | None = None
         self._ride_applied_m = 0.0
         self._after_ride = False  # the scans after a ride until the sensor leaves the cab
+        self.floor_guard = FloorGuard(cfg.elevator, cfg.pruning,  # floors kept after a ride
+                                      cfg.loop_closure.neighbour_max_dz_m)
         self.vertical_offset = np.zeros(3)  # elevator motion the odometry did not see
 
     # ---- one scan ----
@@ -244,7 +249,10 @@ class MonteCarloSlam:
             self.particles.respawn(*resample_all(self.particles.log_w.to_numpy(),
                                                  np.random.default_rng([cfg.seed, len(self.frames),
                                                                         1])))
+        riding = self._ride is not None
         lift = self._elevator_shift(elevator, odo, imu, stamp_ns)
+        if riding and self._ride is None and cfg.elevator.floor_guard:
+            self.floor_guard.start()
         in_cab = self._leaving_cab(points) or elevator  # (called on every scan)
         down, covs = self._preprocess(points, times, odo, first)
         watch.lap("preprocess")
@@ -480,7 +488,11 @@ class MonteCarloSlam:
             frame_ll[unscored] = typical
             log_w[unscored] += typical
         rng = np.random.default_rng([self.cfg.seed, step])
-        dead, sources, lw = prune_plan(log_w, frame_ll, self.cfg.pruning, rng)
+        if scored and self.floor_guard.active:  # after a ride: every floor kept
+            dead, sources, lw = self.floor_guard.prune_plan(log_w, frame_ll, ~unscored,
+                                                            p.positions() @ self._up(), rng)
+        else:
+            dead, sources, lw = prune_plan(log_w, frame_ll, self.cfg.pruning, rng)
         p.respawn(dead, sources, lw)
         post = np.exp(lw - lw.max())
         origin = np.arange(len(lw))

@@ -159,6 +159,17 @@ class ElevatorConfig(Section):
                                    "(the sensor has left the cab, whose open doors leave "
                                    "two: 3 was studied); 0: from the first scan the "
                                    "detector lets go")
+    floor_guard: bool = Field(True, description="after a ride, prune each height stratum "
+                              "on its own and keep every stratum's weight within "
+                              "floor_max_gap_nats of the best, so every floor hypothesis "
+                              "lives until the scans decide (mcl3d/slam/floor_guard.py)")
+    floor_strata_m: float = Field(1.0, gt=0, description="height of a stratum (m): under "
+                                  "the floor spacing")
+    floor_max_gap_nats: float = Field(20.0, gt=0, description="a stratum's total weight is "
+                                      "kept at least exp(-this) times the best stratum's")
+    floor_decide_scans: int = Field(100, ge=1, description="the guard ends once every "
+                                    "other floor has been held down at that bound for this "
+                                    "many scored scans in a row")
 
 
 class SlamConfig(Section):

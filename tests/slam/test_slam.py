@@ -375,3 +375,41 @@ def test_slam_with_free_space_and_the_ride_settings_stays_on_track(forest_log, t
     ref = gt.interpolate_poses(stamps * 1e-9)
     aligned = ref[0] @ geometry.se3_inverse(poses[0]) @ poses
     assert np.linalg.norm(aligned[:, :3, 3] - ref[:, :3, 3], axis=1).max() < 0.25
+
+
+def box_surface(rng, half_xy: float, z0: float, z1: float, n: int) -> np.ndarray:
+    """Points on the walls, floor and ceiling of a box around the sensor (lidar frame)."""
+    faces = []
+    for axis, value in ((0, -half_xy), (0, half_xy), (1, -half_xy), (1, half_xy), (2, z0),
+                        (2, z1)):
+        p = rng.uniform([-half_xy, -half_xy, z0], [half_xy, half_xy, z1], (n // 6, 3))
+        p[:, axis] = value
+        faces.append(p)
+    return np.concatenate(faces)
+
+
+def test_the_guard_starts_when_a_ride_ends_and_only_then(ti_runtime):
+    """A room, a shut cab (the elevator detector holds), the room again: the guard is off
+    before and during the ride and prunes by strata from the first scan after it."""
+    from mcl3d.slam.monte_carlo_slam import MonteCarloSlam
+    from mcl3d.slam.slam_config import SlamConfig
+
+    rng = np.random.default_rng(0)
+    room = box_surface(rng, 6.0, -1.2, 1.8, 6000)
+    cab = box_surface(rng, 1.1, -1.2, 1.2, 6000)
+    slam = MonteCarloSlam(SlamConfig.model_validate({"particles": 20, "seed": 1}))
+    calls = []
+    real = slam.floor_guard.prune_plan
+    slam.floor_guard.prune_plan = lambda *a: calls.append(len(slam.frames)) or real(*a)
+    states = []
+    for k, cloud in enumerate([room] * 3 + [cab] * 3 + [room] * 3):
+        frame = slam.step(cloud, None, k * 100_000_000)
+        states.append((frame.elevator, slam.floor_guard.active))
+    assert [e for e, _ in states] == [False] * 3 + [True] * 3 + [False] * 3
+    assert [a for _, a in states] == [False] * 6 + [True] * 3
+    assert calls == [6, 7, 8]  # the scored scans after the ride
+    off = MonteCarloSlam(SlamConfig.model_validate({"particles": 20, "seed": 1,
+                                                    "elevator": {"floor_guard": False}}))
+    for k, cloud in enumerate([room] * 3 + [cab] * 3 + [room] * 2):
+        off.step(cloud, None, k * 100_000_000)
+    assert not off.floor_guard.active
