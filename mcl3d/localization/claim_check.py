@@ -8,20 +8,23 @@ the filter then follows the look-alike place one room along and claims `converge
 
 So before the first `converged` of a search the claim is checked against places the filter
 may no longer hold: test poses on a grid over the map's global candidates (a position per
-`grid_m` cell times yaws `yaw_deg` apart, the claim's roll and pitch) are scored on the
-newest scans with a wide coarse model; the best pose of each place (a `place_m` cell and
-`place_yaw_deg` bin) away from the claim is a candidate. The claim and the best `candidates`
-are then refined alike (two rounds of `refine_poses` poses around each, the accurate model)
-and compared on a window of scans spread over the search so far, placed by the motion
-input. A place within `margin_nats` of the claim's window score (or better) that the filter
-holds no particles at explains the scans about as well: the claim is withheld (the update
-reports `ambiguous`) and the localizer re-seeds a share of its particles there, so that the
-filter's own evidence decides between the places from then on. A place re-seeded once in a
-search and ruled out since does not stop a later claim.
+`grid_m` cell times yaws `yaw_deg` apart, the claim's roll and pitch) are scored on a scan
+with a wide coarse model; the best pose of each place (a `place_m` cell and `place_yaw_deg`
+bin) away from the claim is a candidate. The grid is placed at each of the newest
+`anchor_scans` scans of the window and its candidates moved to the newest scan by the motion
+input: a robot in a doorway stands where the map saw no floor (no global candidate, no test
+pose within a metre of it), but a few metres back it did not. The claim and the best
+`candidates` are then refined alike (two rounds of `refine_poses` poses around each, the
+accurate model) and compared on a window of scans spread over the search so far, placed by
+the motion input. A place within `margin_nats` of the claim's window score (or better) that
+the filter holds no particles at explains the scans about as well: the claim is withheld
+(the update reports `ambiguous`) and the localizer re-seeds a share of its particles there,
+so that the filter's own evidence decides between the places from then on. A place
+re-seeded once in a search and ruled out since does not stop a later claim.
 
 All scoring runs in the ordinary likelihood kernels on the device (kernels/claim_check.py
 places, moves and reduces the test poses); per check only each place's best score and pose
-index come back (8 bytes a place), then a few dozen poses.
+index come back (8 bytes a place and anchor scan), then a few dozen poses.
 """
 
 from __future__ import annotations
@@ -142,16 +145,14 @@ class ClaimCheck:
         c = self.cfg.check
         self._allocate(p, free)
         window = self.window.pick(c.window_scans)
-        roll, pitch, _ = geometry.rot_to_rpy(T_claim[:3, :3])
-        found = self._candidates(weigher, window[:c.coarse_scans], T_claim, float(roll),
-                                 float(pitch))
+        found = self._anchored_candidates(weigher, window, T_claim)
         rivals: list[Rival] = []
         if found:
             poses, scores = self._refine(weigher, window, [T_claim, *found], seed, counter)
             rivals = [Rival(T, float(s - scores[0])) for T, s in zip(poses[1:], scores[1:],
                                                                      strict=True)
                       if s - scores[0] > -c.margin_nats and self._away(T, poses[0], 2.0)]
-            rivals = self._unheld(p, rivals)
+            rivals = self._unheld(p, self._distinct(rivals))
         self.runs += 1
         self.ms += 1e3 * (time.perf_counter() - t0)
         return rivals
@@ -192,6 +193,32 @@ class ClaimCheck:
                 weigher.scan_likelihood(test, len(points), weigher.cache_block)
             else:
                 weigher.coarse_likelihood(test, len(points), coarse_sigma)
+
+    def _anchored_candidates(self, weigher, window, T_claim: np.ndarray) -> list[np.ndarray]:
+        """The candidates of test poses placed at each of the newest `anchor_scans` scans of
+        the window, moved to the newest scan by the motion input. The robot may stand where
+        the map has no global candidate (a doorway, beside furniture: the map saw no floor
+        there), where no test pose can be near it, but not at every scan of the window. Not
+        merged across anchors: a poor pose of a place from one must not hide a good one of
+        the same place from another (the refined rivals are, see `_distinct`)."""
+        c = self.cfg.check
+        found: list[np.ndarray] = []
+        for a in range(min(c.anchor_scans, len(window))):
+            T_anchor_curr = geometry.se3_inverse(window[a][1])
+            scans = [(pts, T_anchor_curr @ T) for pts, T in window[a:a + c.coarse_scans]]
+            T_claim_anchor = T_claim @ window[a][1]
+            roll, pitch, _ = geometry.rot_to_rpy(T_claim_anchor[:3, :3])
+            found += [T @ T_anchor_curr for T in self._candidates(
+                weigher, scans, T_claim_anchor, float(roll), float(pitch))]
+        return found[:MAX_CENTRES - 1]
+
+    def _distinct(self, rivals: list[Rival]) -> list[Rival]:
+        """The best of rivals at one place (anchors may find a place twice, refined alike)."""
+        kept: list[Rival] = []
+        for r in sorted(rivals, key=lambda r: -r.gap_nats):
+            if all(self._away(r.T_map_lidar, k.T_map_lidar, 2.0) for k in kept):
+                kept.append(r)
+        return kept
 
     def _candidates(self, weigher, scans, T_claim: np.ndarray, roll: float, pitch: float
                     ) -> list[np.ndarray]:

@@ -150,11 +150,16 @@ class CheckConfig(Section):
     yaw_deg: float = Field(10.0, gt=0.0, le=90.0, description="... times yaws this far apart")
     coarse_sigma_m: float = Field(0.4, gt=0.0, description="the coarse model's sigma for the "
                                                            "test poses (wide: grid error)")
-    coarse_scans: int = Field(1, ge=1, description="newest scans of the window the test "
-                                                   "poses are scored on")
+    coarse_scans: int = Field(1, ge=1, description="scans of the window, from the one the "
+                                                   "test poses are placed at, they are "
+                                                   "scored on")
+    anchor_scans: int = Field(2, ge=1, description="the test poses are placed at each of this "
+                                                   "many newest scans of the window (the "
+                                                   "robot may stand off the candidates at one)")
     place_m: float = Field(2.0, gt=0.0, description="one best test pose per cell of this size")
     place_yaw_deg: float = Field(30.0, gt=0.0, le=360.0, description="... and yaw bin")
-    candidates: int = Field(15, ge=1, le=63, description="best places refined and compared")
+    candidates: int = Field(15, ge=1, le=63, description="best places per anchor scan refined "
+                                                         "and compared (63 in all at most)")
     window_scans: int = Field(8, ge=1, description="scans, spread over the search so far, "
                                                    "that the refined places are compared on")
     history_scans: int = Field(300, ge=1, description="the window spans at most this many "

@@ -27,9 +27,11 @@ def two_rooms():
     return tsdf, localize_world.Scanner(n_azimuth=180, seed=5), shift_m
 
 
-def run_search(tsdf, scanner, check: bool, n_scans: int = 24):
+def run_search(tsdf, scanner, check: bool, n_scans: int = 24, withhold_all: bool = False):
     """A global search whose particles all start in the first room (the second room's died,
-    as they do with too few particles for the map); the results per scan."""
+    as they do with too few particles for the map); the results per scan. `withhold_all`:
+    the localizer withholds every claim without checking (the search, and the check's window
+    of scans, go on to the last scan)."""
     from mcl3d.localization.localization_config import LocalizerConfig
     from mcl3d.localization.localizer import Localizer
 
@@ -42,6 +44,8 @@ def run_search(tsdf, scanner, check: bool, n_scans: int = 24):
         "particles": N_PARTICLES, "seed": 4, "recovery": {"enabled": False},
         "init": {"height_band_m": [0.5, 1.1]}, "check": {"enabled": check}})
     loc = Localizer(tsdf, cfg, imu_roll_pitch=(0.0, 0.0))
+    if withhold_all:
+        loc._claim_withheld = lambda T_claim: True
     loc.init_particles(positions, quats, search=True)
     steps = itertools.chain([None], (geometry.relative_se3(a, b)
                                      for a, b in itertools.pairwise(path)))
@@ -71,3 +75,31 @@ def test_the_check_withholds_the_claim_while_both_rooms_explain_the_scans(two_ro
     assert results[-1].state == "ambiguous"
     d = np.linalg.norm(results[-1].T_map_lidar[:3, 3] - path[-1][:3, 3])
     assert min(d, abs(d - shift_m)) < 0.2  # the estimate is one of the two rooms
+
+
+def test_the_check_finds_a_place_whose_pose_now_has_no_global_candidate(two_rooms, ti_runtime):
+    """The twin room's pose now lies in a hole of the candidates (a doorway: the map saw no
+    floor there); the grid placed at the newest scan cannot reach it, the grid placed at an
+    earlier scan of the window (1.7 m back) can."""
+    from mcl3d.localization.claim_check import ClaimCheck
+    from mcl3d.localization.initialization import FreeCells
+
+    tsdf, scanner, shift_m = two_rooms
+    loc, results, path = run_search(tsdf, scanner, check=True, n_scans=40, withhold_all=True)
+    assert len(loc.claim_check.window.scans) == len(path)
+    free = loc.free_space()
+    twin_now = path[-1][:3, 3] + [shift_m, 0.0, 0.0]
+    centres = free.corners_m + 0.5 * free.cell_m
+    hole = np.linalg.norm(centres[:, :2] - twin_now[:2], axis=1) < 1.0
+    holed = FreeCells(free.corners_m[~hole], free.cell_m)
+    T_claim = results[-1].T_map_lidar
+    found = {}
+    for anchors in (1, 2):
+        cfg = loc.cfg.model_copy(update={"check": loc.cfg.check.model_copy(
+            update={"anchor_scans": anchors, "window_scans": 4})})
+        check = ClaimCheck(cfg)
+        check.window = loc.claim_check.window
+        rivals = check.rivals(loc.weigher, loc.particles, T_claim, holed, 4, 1)
+        found[anchors] = [np.linalg.norm(r.T_map_lidar[:3, 3] - twin_now) for r in rivals]
+    assert not any(d < 0.4 for d in found[1])
+    assert any(d < 0.4 for d in found[2])
