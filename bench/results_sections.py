@@ -350,8 +350,8 @@ within 4 s of leaving the cab, not on 2F: 3F's keyframes were made just before t
 all three on (2026-11-27, 1,000 particles, load 3–6): seeds 1, 2, 3 end 3.52, 3.57,
 3.33 m off (seed 3 never run before); with IMU seed 1 stays right (0.01 m). On the short
 forest loop the term costs twice the frame time (99.6 against 47.7 ms median, 2,000
-particles) for the same ATE (0.058 against 0.062 m), so all three stay off by default.
-Seeds 4–5 without IMU not run.
+particles) for the same ATE (0.058 against 0.062 m), so the term stays off on every scan
+(below: the defaults use it only after a ride). Seeds 4–5 without IMU were not run then.
 
 The floor guard (`elevator.floor_guard`, on by default; docs/slam.md, "Floor hypotheses
 after a ride") keeps that 2F hypothesis: from the first scan after a ride each 1 m height
@@ -372,15 +372,28 @@ Replaying the decision rule on the recorded per-band weights of seeds 1, 2 and 4
 down; only seed 3 was rerun with it. In seed 3 the 200-scan rule let particles the ride had
 dropped to 1F walk down the stairs into a "basement" their own bent map explained.
 Seed 5 (the 100-scan default, the three options on) ends 0.008 m off, SLAM ATE 0.591 against
-the odometry's 1.630 m, 115 ms a frame: with the three options on, the right floor in 5 of 5
-seeds without IMU (seeds 1, 2, 4 on the replay). With today's defaults (the guard on, the
-three options off) seed 1 still ends 3.53 m off, and with only the two ride options on
-3.52 m: the free-space term is what lets the lower floor's lobby win, and it doubles the
-frame time everywhere (37–45 against 115–178 ms here), so it stays off and the acceptance
-is met only with `--set likelihood.free_space_cost=3 elevator.resample_on_entry=true
-elevator.exit_open_sectors=3`. With the IMU and the defaults (the guard on), seeds 1–5
+the odometry's 1.630 m, 115 ms a frame. With the guard alone (the three options off) seed 1
+still ends 3.53 m off, and with only the two ride options on 3.52 m: the free-space term
+is what lets the lower floor's lobby win, and on every scan it costs 2–3× the frame time
+(115–178 against 37–45 ms here). With the IMU, the guard on and the options off, seeds 1–5
 end on the right floor (0.002–0.015 m), SLAM ATE 0.070–0.115 m against the odometry's
-1.63–1.65 m, 30–32 ms a frame (2026-11-27 04:49–05:03, load 1–3).
+1.63–1.65 m, 30–32 ms a frame (04:49–05:03, load 1–3).
+
+The defaults are now the guard, the two ride options and the free-space term only while
+the guard holds the floors after a ride (`elevator.free_space_cost` 3; the term on every
+scan stays off; the paper preset turns all four off). `python bench/study_slam.py --cases
+"paper-elevator, no IMU" --seeds 1 2 3 4 5 --particles 1000 --presets default` with them
+(2026-11-27 05:04–05:23, load 1–4):
+
+| seed | without IMU: final floor error | SLAM / odometry ATE | ms a frame | with the IMU: final floor error | SLAM ATE |
+| --- | --- | --- | --- | --- | --- |
+| 1 | 0.012 m | 0.616 / 1.67 m | 44 | 0.005 m | 0.096 m |
+| 2 | 0.009 m | 0.597 / 1.65 m | 49 | 0.012 m | 0.094 m |
+| 3 | 0.005 m | 0.660 / 1.64 m | 43 | 0.003 m | 0.088 m |
+| 4 | 0.004 m | 0.611 / 1.62 m | 43 | 0.010 m | 0.070 m |
+| 5 | 0.014 m | 0.576 / 1.63 m | 43 | 0.017 m | 0.114 m |
+
+The right floor in 5 of 5 seeds without the IMU and 5 of 5 with it (32–47 ms a frame).
 
 The elevator detector (`elevator.detector: enclosure`, every one of 12 azimuth sectors
 closed within 3 m at the 90th percentile) fires inside the cab with the doors shut, and

@@ -209,7 +209,8 @@ class MonteCarloSlam:
                               max_source_points=cfg.correction.points)
         self.particles = SlamParticles(cfg.particles, kf.capacity, self.gicp, cfg.seed)
         lk = cfg.likelihood
-        self.free_space = None if lk.free_space_cost <= 0 else FreeSpace(
+        self.free_space = None if max(lk.free_space_cost, cfg.elevator.free_space_cost) <= 0 \
+            else FreeSpace(
             kf.capacity, lk.free_space_bin_deg, cfg.odometry.min_range_m,
             cfg.odometry.max_range_m, lk.free_space_points)
         self._keyframes_full = False  # said once when keyframes.capacity is reached
@@ -311,6 +312,13 @@ class MonteCarloSlam:
             self.drift[4] += lift[2] ** 2  # the elevator's random walk
         return cov
 
+    def _free_space_cost(self) -> float:
+        """The free-space term's cost on this scan: `likelihood.free_space_cost` on every
+        scan, else `elevator.free_space_cost` while the floor guard holds the floors."""
+        if self.cfg.likelihood.free_space_cost > 0:
+            return self.cfg.likelihood.free_space_cost
+        return self.cfg.elevator.free_space_cost if self.floor_guard.active else 0.0
+
     def _correct_and_weigh(self, down: np.ndarray, covs: np.ndarray, in_cab: bool,
                            cov: np.ndarray | None, T_odom: np.ndarray, watch: _Stopwatch,
                            points: np.ndarray
@@ -327,7 +335,8 @@ class MonteCarloSlam:
         src_pts, src_covs = thin(down, covs, corr.points)
         scored = p.num_keyframes > 0 and len(src_pts) >= corr.min_inliers and not in_cab
         if scored:
-            if self.free_space is not None:
+            free_space_cost = self._free_space_cost()
+            if free_space_cost > 0:
                 self.free_space.set_scan(points)
             self.gicp.set_source(src_pts, src_covs)
             loop = cfg.loop_closure
@@ -342,7 +351,7 @@ class MonteCarloSlam:
                 p.select_neighbours(*gate)
         watch.lap("correct")
         if scored:
-            p.weigh(len(src_pts), cfg.likelihood, self.free_space)
+            p.weigh(len(src_pts), cfg.likelihood, self.free_space, free_space_cost)
         watch.lap("weigh")
         if scored and corr.refine_without_loop and cov is not None:
             p.refine(cov, corr)

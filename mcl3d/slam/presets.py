@@ -32,8 +32,12 @@ PAPER: dict[str, Any] = {
     # §III-F
     "pruning.posterior": 1e-8,
     "pruning.likelihood_ratio": 1e-16,
-    # §III-E: the elevator is detected by the median range of the scan
+    # §III-E: the elevator is detected by the median range of the scan; none of our ride aids
     "elevator.detector": "median",
+    "elevator.resample_on_entry": False,
+    "elevator.exit_open_sectors": 0,
+    "elevator.free_space_cost": 0.0,
+    "elevator.floor_guard": False,
 }
 
 PRESETS: dict[str, dict[str, Any]] = {"default": {}, "paper": PAPER}

@@ -150,15 +150,18 @@ class ElevatorConfig(Section):
                              "elevator, without IMU (m)")
     imu_sigma_z_m: float = Field(0.01, ge=0, description="the same around the IMU's vertical "
                                  "motion (m)")
-    resample_on_entry: bool = Field(False, description="resample every particle by weight "
+    resample_on_entry: bool = Field(True, description="resample every particle by weight "
                                     "when a ride starts, so the vertical walk spreads the "
                                     "likely particles' copies over the heights, not a few "
                                     "heavy particles to a few heights")
-    exit_open_sectors: int = Field(0, ge=0, description="after a ride, scans are neither "
+    exit_open_sectors: int = Field(3, ge=0, description="after a ride, scans are neither "
                                    "scored nor keyframes until this many sectors are open "
                                    "(the sensor has left the cab, whose open doors leave "
                                    "two: 3 was studied); 0: from the first scan the "
                                    "detector lets go")
+    free_space_cost: float = Field(3.0, ge=0, description="the free-space term "
+                                   "(likelihood.free_space_*) at this cost only while the "
+                                   "floor guard holds the floors after a ride (0: off)")
     floor_guard: bool = Field(True, description="after a ride, prune each height stratum "
                               "on its own and keep every stratum's weight within "
                               "floor_max_gap_nats of the best, so every floor hypothesis "

@@ -186,19 +186,19 @@ class SlamParticles:
                                                                            strict=True)}
 
     def weigh(self, num_src: int, cfg: LikelihoodConfig,
-              free_space: FreeSpace | None = None) -> None:
+              free_space: FreeSpace | None = None, free_space_cost: float = 0.0) -> None:
         """Frame log-likelihood of every particle, added to its cumulative log weight;
         with `free_space`, scan points in a neighbour's seen-through space and the
-        neighbour's points in the scan's (FreeSpace.count) cost `cfg.free_space_cost` each."""
+        neighbour's points in the scan's (FreeSpace.count) cost `free_space_cost` each."""
         self._linearize(num_src, loop_only=False)
         best = self.gicp.poses.best
         seen_cost = 0.0
-        if free_space is not None and cfg.free_space_cost > 0:
+        if free_space is not None and free_space_cost > 0:
             stride = max(1, num_src // cfg.free_space_points)
             judged = (num_src + stride - 1) // stride
             free_space.count(self, self.gicp.pool.points, num_src, stride,
                              cfg.free_space_margin_m, cfg.free_space_margin_frac, self.seen)
-            seen_cost = cfg.free_space_cost * num_src / judged
+            seen_cost = free_space_cost * num_src / judged
         slam_kernels.likelihood(self.n, num_src, self.nb, best.e, best.n, cfg.outlier_cost,
                                 self.seen, seen_cost, cfg.points_weight, self.frame_ll,
                                 self.log_w)

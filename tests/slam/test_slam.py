@@ -413,3 +413,23 @@ def test_the_guard_starts_when_a_ride_ends_and_only_then(ti_runtime):
     for k, cloud in enumerate([room] * 3 + [cab] * 3 + [room] * 2):
         off.step(cloud, None, k * 100_000_000)
     assert not off.floor_guard.active
+
+
+def test_the_free_space_term_weighs_only_while_the_guard_holds_the_floors(ti_runtime):
+    """`elevator.free_space_cost`: the term costs nothing before and during a ride and
+    applies from the first scored scan after it, while the floor guard is active."""
+    from mcl3d.slam.monte_carlo_slam import MonteCarloSlam
+    from mcl3d.slam.slam_config import SlamConfig
+
+    rng = np.random.default_rng(0)
+    room = box_surface(rng, 6.0, -1.2, 1.8, 6000)
+    cab = box_surface(rng, 1.1, -1.2, 1.2, 6000)
+    slam = MonteCarloSlam(SlamConfig.model_validate(
+        {"particles": 20, "seed": 1, "elevator": {"free_space_cost": 3.0}}))
+    costs = []
+    real = slam.particles.weigh
+    slam.particles.weigh = lambda n, cfg, fs, cost: costs.append(cost) or real(n, cfg, fs, cost)
+    for k, cloud in enumerate([room] * 3 + [cab] * 3 + [room] * 3):
+        slam.step(cloud, None, k * 100_000_000)
+    assert slam.free_space is not None
+    assert costs == [0.0, 0.0, 3.0, 3.0, 3.0]  # scans 1-2 before the ride, 6-8 after it
