@@ -193,14 +193,16 @@ uniform 6-DoF particles.
 The convergence check (`localizer.check`, on by default, off in the paper preset;
 docs/sensor-model.md, "Checking a claim against the whole map"): at 10,000 particles in the
 office (0.15 per candidate cell) the true room's particles can die in the corridor before
-the rooms are told apart; the filter then claimed `converged` 6 m off, in the next room (seed
-2, scan 157, 15 false scans), because the place evidence protects only places that hold
-particles. Before a search's first claim, test poses over the whole map's candidates, placed
+the rooms are told apart, and the place evidence protects only places that hold particles:
+without the check seed 2 claimed `converged` 6 m off, in the next room (scan 132, on the map
+of another world's furniture; scan 157 and 15 false scans on the right map with the check's
+first version, which placed its test grid at the newest scan only: the robot stood in a
+doorway without candidate cells). Before a search's first claim, test poses over the whole map's candidates, placed
 at the newest two scans, are scored, the best places refined and compared with the claim on
 8 scans spread over the search; a place without particles that explains them within 4.6 nats
 withholds the claim and gets 5% of the particles. Seed 2 is now withheld at scan 157 and
-stays `ambiguous`; seeds 1, 3, 4, 5 converge at the same scans as without the check (37, 39,
-36, 71), 50,000 particles at 36, and the ambiguity study's quick run (office and arena,
+stays `ambiguous`; seeds 1, 3, 4, 5 converge at the same scans as with the first version
+(37, 39, 36, 71), 50,000 particles at 36, and the ambiguity study's quick run (office and arena,
 100,000) and a warehouse run keep 0 false convergences. A check costs 0.35–1.9 s on the
 office (3,336 places, 144,288 test poses), 5–6 s on the warehouse and the arena (loaded,
 compilation included), once per claim. Not run: the office's 11 trajectories (5 seeds of one
