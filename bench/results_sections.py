@@ -247,7 +247,7 @@ commit ba21884, before the “halfway to lost” refinement, which only withhold
 convergence.
 """),
     "study_slam": (
-        "2026-11-21 (accuracy) and 2026-11-26 (the paper scenarios)",
+        "2026-11-21 (accuracy), 2026-11-26 and 2026-11-27 (the paper scenarios)",
         r"""
 Accuracy, `python bench/study_slam.py --seeds 1 2 3 4 5` (2,000 particles, SE(3)-aligned
 ATE; `bench/results/study_slam_s8_forest.json`, `study_slam_s8_elev.json`). The forest is a
