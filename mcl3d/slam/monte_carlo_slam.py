@@ -58,7 +58,7 @@ from mcl3d.registration.preprocess import (
     voxel_downsample,
 )
 from mcl3d.slam.elevator import ElevatorRide, in_elevator, open_sectors
-from mcl3d.slam.floor_guard import FloorGuard
+from mcl3d.slam.floor_guard import FloorGuard, stratified_prune_plan
 from mcl3d.slam.frame_store import SlamFrame, SlamFrames
 from mcl3d.slam.free_space import FreeSpace
 from mcl3d.slam.keyframe_store import KeyframeBook, slot_to_reuse
@@ -127,28 +127,9 @@ def prune_plan(log_w: np.ndarray, frame_ll: np.ndarray, cfg: PruningConfig,
     likelihood has no absolute scale) are dead and
     become copies of living particles drawn by weight (systematic sampling); a particle
     copied c times shares its weight with its copies (each keeps 1/(c+1)). Weights are
-    returned normalized (log, max 0 before the split)."""
-    lw = log_w.astype(np.float64) - float(np.max(log_w))
-    post = np.exp(lw)
-    post /= post.sum()
-    ratio = np.log(cfg.likelihood_ratio) if cfg.likelihood_ratio > 0 else -np.inf
-    dead = (post < cfg.posterior) | (frame_ll - np.max(frame_ll) < ratio)
-    if dead.all():
-        dead[int(np.argmax(lw))] = False
-    dead_idx = np.flatnonzero(dead)
-    living = np.flatnonzero(~dead)
-    if len(dead_idx) == 0:
-        return dead_idx, dead_idx, lw
-    p = post[living] / post[living].sum()
-    cdf = np.cumsum(p)
-    u = (rng.random() + np.arange(len(dead_idx))) / len(dead_idx)
-    sources = living[np.minimum(np.searchsorted(cdf, u * cdf[-1]), len(living) - 1)]
-    copies = np.bincount(sources, minlength=len(lw))
-    share = np.log1p(copies)
-    lw = lw.copy()
-    lw[dead_idx] = lw[sources] - share[sources]
-    lw[living] -= share[living]
-    return dead_idx, sources, lw
+    returned normalized (log, max 0 before the split). The floor guard's rule with every
+    particle in one group."""
+    return stratified_prune_plan(log_w, frame_ll, np.zeros(len(log_w), np.int64), cfg, rng)
 
 
 def resample_all(log_w: np.ndarray, rng: np.random.Generator
