@@ -38,6 +38,7 @@ import numpy as np
 import taichi as ti
 
 from mcl3d.core import geometry
+from mcl3d.core.field_tree import FieldTree
 from mcl3d.kernels import claim_check as kcc
 from mcl3d.localization.initialization import FreeCells
 from mcl3d.localization.localization_config import LocalizerConfig
@@ -96,14 +97,16 @@ class _Grid:
         _, group = np.unique(np.floor(self.positions / place_m).astype(np.int64), axis=0,
                              return_inverse=True)
         n = len(self.positions)
-        self.pos = ti.Vector.field(3, ti.f32, shape=max(n, 1))
-        self.group = ti.field(ti.i32, shape=max(n, 1))
+        self.groups = (int(group.max()) + 1 if n else 0) * bins
+        by_map = FieldTree()  # sized by the map (field_tree)
+        self.pos = by_map.field(ti.f32, max(n, 1), n=3)
+        self.group = by_map.field(ti.i32, max(n, 1))
+        self.best = by_map.field(ti.f32, max(self.groups, 1))
+        self.arg = by_map.field(ti.i32, max(self.groups, 1))
+        by_map.finalize()
         if n:
             self.pos.from_numpy(self.positions.astype(np.float32))
             self.group.from_numpy(group.ravel().astype(np.int32))
-        self.groups = (int(group.max()) + 1 if n else 0) * bins
-        self.best = ti.field(ti.f32, shape=max(self.groups, 1))
-        self.arg = ti.field(ti.i32, shape=max(self.groups, 1))
 
 
 class ClaimCheck:

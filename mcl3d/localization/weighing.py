@@ -14,6 +14,7 @@ import numpy as np
 import taichi as ti
 
 from mcl3d.core import runtime
+from mcl3d.core.field_tree import FieldTree
 from mcl3d.kernels import counting_sort as ks
 from mcl3d.kernels import likelihood as kl
 from mcl3d.kernels import paper_likelihood as kpl
@@ -56,22 +57,26 @@ class DeviceCoarseField:
         self.coarse_dims = tuple(int(d) for d in host.coarse_dims)
         self.block_shift = k.bit_length() - 1
         self.layout = layout
+        tree = FieldTree()
         if layout == "codes":
             codes = codes_over_bounds(host)
-            self.codes = ti.field(ti.i32, shape=codes.shape)
+            self.codes = tree.field(ti.i32, codes.shape)
+            tree.finalize()
             self.codes.from_numpy(codes)
             self.nbytes = {"index": 0, "bricks": codes.nbytes}
             return
-        self.bricks = ti.field(ti.i32, shape=(len(host.bricks), k, k, k))
+        self.bricks = tree.field(ti.i32, (len(host.bricks), k, k, k))
         coords = np.ascontiguousarray(host.block_coords, dtype=np.int32).reshape(-1, 3)
         slots = np.ascontiguousarray(host.block_slots, dtype=np.int32)
         if layout == "slots":
-            self.slots = ti.field(ti.i32, shape=self.coarse_dims)
+            self.slots = tree.field(ti.i32, self.coarse_dims)
+            tree.finalize()
             index_bytes = 4 * int(np.prod(self.coarse_dims))
         else:
             tiles = tiles_of(coords)
-            self.top = ti.field(ti.i32, shape=tuple(-(-d // kl.TILE) for d in self.coarse_dims))
-            self.tiles = ti.field(ti.i32, shape=(len(tiles) + 1, kl.TILE, kl.TILE, kl.TILE))
+            self.top = tree.field(ti.i32, tuple(-(-d // kl.TILE) for d in self.coarse_dims))
+            self.tiles = tree.field(ti.i32, (len(tiles) + 1, kl.TILE, kl.TILE, kl.TILE))
+            tree.finalize()
             index_bytes = 4 * (int(np.prod(self.top.shape)) + int(np.prod(self.tiles.shape)))
             for s in range(0, len(tiles), UPLOAD_CELLS):
                 part = tiles[s:s + UPLOAD_CELLS]
@@ -118,14 +123,17 @@ class ScanWeigher:
         self._table = ti.field(ti.f32, shape=kl.N_CODES)
         self._coarse_table = ti.field(ti.f32, shape=kl.COARSE_BINS + 2)
         self._table_sigma: float | None = None
-        self._slots = ti.field(ti.i32, shape=kl.slot_shape(tsdf))
-        kl.build_slots(tsdf, self._slots)
+        by_map = FieldTree()  # sized by the map (field_tree)
+        self._slots = by_map.field(ti.i32, kl.slot_shape(tsdf))
         if cfg.model == "paper":  # eq. 3 precomputed per voxel (set_sigma fills it)
-            self._values = ti.field(ti.f32, shape=(tsdf.capacity + 2, kl.BLOCK, kl.BLOCK,
-                                                   kl.BLOCK))
+            self._values = by_map.field(ti.f32, (tsdf.capacity + 2, kl.BLOCK, kl.BLOCK,
+                                                 kl.BLOCK))
         else:
-            self._codes = ti.field(ti.i32, shape=(tsdf.capacity + 2, kl.BLOCK, kl.BLOCK,
-                                                  kl.WORDS_Z))
+            self._codes = by_map.field(ti.i32, (tsdf.capacity + 2, kl.BLOCK, kl.BLOCK,
+                                                kl.WORDS_Z))
+        by_map.finalize()
+        kl.build_slots(tsdf, self._slots)
+        if cfg.model != "paper":
             kl.build_codes(tsdf, self._codes, tsdf.n_blocks, cfg.match_dist_m)
         self._coarse: DeviceCoarseField | None = None  # the coarse search field, once built
         self._coarse_host: coarse_field.CoarseField | None = None
