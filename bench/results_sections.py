@@ -209,15 +209,30 @@ compilation included), once per claim. Not run: the office's 11 trajectories (5 
 route here), paper-preset runs at other particle counts.
 """),
     "study_ambiguity": (
-        "2026-11-26 (the second table: 21:00-23:10)",
+        "2026-11-27 06:15-07:20 (the first table), 2026-11-26 (the others)",
         r"""
-`python bench/study_ambiguity.py` (2-core shared Xeon, cpu backend; 100,000 particles,
-global init, the range gate at 6 m as a user with a short view would set it; maps built from
-the world mesh). A false convergence is a scan reported `converged` more than 1 m or 10°
-from the truth. In the warehouse (6 identical aisles of 13 identical bays, its one unique
-feature a ramp that comes into view 62.5 s into the log) the earlier filter claimed
-`converged` 13 m from the truth for 40 scans (4 s) at 44 s, before the ramp was in view;
-it had let the true place die within 6 s (see docs/sensor-model.md, "place evidence").
+`python bench/study_ambiguity.py --worlds warehouse office arena --seeds 1 2 3 4 5`, then
+`--worlds warehouse --seeds 6 7 8 9 10` (2-core shared Xeon, cpu backend, load 6-10 from two
+other jobs, the study at `nice 19`; commit d34f029, with the convergence check of
+`localizer.check`; 100,000 particles, global init, the range gate at 6 m as a user with a
+short view would set it; maps built from the world mesh). A false convergence is a scan
+reported `converged` more than 1 m or 10° from the truth. In the warehouse (6 identical
+aisles of 13 identical bays, its one unique feature a ramp that comes into view 62.5 s into
+the log) an earlier filter claimed `converged` 13 m from the truth for 40 scans (4 s) at
+44 s, before the ramp was in view; it had let the true place die within 6 s (see
+docs/sensor-model.md, "place evidence").
+
+| world (6 m view, 100,000 particles) | filter seeds | scans reported `converged` | of them > 1 m or 10° off | first `converged` on the truth | ends on the truth |
+| --- | --- | --- | --- | --- | --- |
+| warehouse | 1–10 | 2683 | 0 | 70.0–77.5 s (after the ramp at 62.5 s in 10 of 10) | 10 of 10 |
+| office | 1–5 | 2820 | 0 | 3.6 s | 5 of 5 |
+| arena | 1–5 | 1701 | 0 | 3.6 s | 5 of 5 |
+
+The convergence check ran once per run, twice in warehouse seeds 5 and 6, where it withheld
+one claim each (5,000 and 15,000 particles reseeded at look-alike places; the runs then
+converged on the truth), 1.8–4.2 s a check under that load; updates took 0.10–0.22 s.
+
+Earlier runs of the same study, before the check (2026-11-26):
 
 | world (6 m view, 100,000 particles) | filter seeds | scans reported `converged` | of them > 1 m or 10° off | first `converged` on the truth | ends on the truth |
 | --- | --- | --- | --- | --- | --- |
@@ -237,14 +252,12 @@ particles):
 
 One simulated log per world and log seed (world seed 1), the filter seeds varied; maps from the mesh. The
 office and arena `ground` routes start where a 6 m view already tells the place, so they
-converge at 3.6 s: no false claims there, but no hard ambiguity either. The office `kidnap`
+converge at 3.6 s: no false claims there, but no hard ambiguity either (the hard office
+case is the map from a log, "Global localization and kidnap" above). The office `kidnap`
 log with the same 6 m view (50,000 particles, one run) is the ambiguous office case: the
 earlier filter stayed `converged` at the old room for 5 scans after the jump, now for none
 (the converged claim is withheld from the first scan that falls far below the healthy
 match), and it reports `ambiguous` afterwards while a look-alike room explains the scans.
-Updates took 0.2–0.6 s at 100,000 particles on the loaded 2-core machine. The study ran on
-commit ba21884, before the “halfway to lost” refinement, which only withholds claims after
-convergence.
 """),
     "study_slam": (
         "2026-11-21 (accuracy), 2026-11-26 and 2026-11-27 (the paper scenarios)",
