@@ -22,8 +22,8 @@ def test_map_sized_fields_share_no_tree_with_particle_buffers(ti_runtime):
     particles = ParticleSet(64)
     weigher = ScanWeigher(tsdf, SensorModelConfig(), particles.capacity)
     weigher.build_coarse()
-    grid = _Grid(FreeCells(np.zeros((3, 3), np.float32) + [[0, 0, 0], [1, 0, 0], [0, 1, 0]],
-                           0.5), 0.5, 2.0, 12)
+    corners_m = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
+    grid = _Grid(FreeCells(corners_m, 0.5), 0.5, 2.0, 12)
     particles.pos.fill(0.0)  # materializes the trees of the particle buffers
     by_particles = {tree(f) for f in (particles.pos, particles.log_w, weigher._keys,
                                       weigher._order, weigher._points)}
