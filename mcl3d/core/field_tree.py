@@ -18,11 +18,11 @@ AXES = (ti.i, ti.ij, ti.ijk, ti.ijkl)
 
 class FieldTree:
     """A ti.FieldsBuilder with dense placement by shape: `field`, then `finalize` once
-    before the first kernel reads the fields; `destroy` frees them."""
+    before the first kernel reads the fields (they live as long as the runtime, as
+    `ti.root`'s do)."""
 
     def __init__(self):
         self._builder = ti.FieldsBuilder()
-        self._tree = None
 
     def field(self, dtype, shape, n: int | None = None):
         """A dense field of `shape` (an int or a tuple); a vector of n when n is given."""
@@ -31,11 +31,5 @@ class FieldTree:
         self._builder.dense(AXES[len(shape) - 1], shape).place(f)
         return f
 
-    def finalize(self) -> FieldTree:
-        self._tree = self._builder.finalize()
-        return self
-
-    def destroy(self) -> None:
-        if self._tree is not None:
-            self._tree.destroy()
-            self._tree = None
+    def finalize(self) -> None:
+        self._builder.finalize()
