@@ -8,8 +8,8 @@
 #
 # Part 1: Open3D without its GUI resources, ML ops and plotly viewer (the simulator and the map
 # builder need only its geometry), the shared libraries it loads, the compiled wheels. Part 2:
-# Taichi without its C API and examples, the pure-Python wheels, the real recordings the
-# benches read (../shared/data/hdl32_pair, ouster_os1_128_lb_n3). Both go to /tmp/site, the
+# Taichi without its C API and examples, the pure-Python wheels, the real recordings
+# (../shared/data: the benches and the tests read them). Both go to /tmp/site, the
 # libraries to /tmp/gllibs; device_suite.sh uses them. /tmp survives between two calls only
 # while the machine stays warm (30 s): make call 2 right after call 1. The device gets the
 # working tree: commit or stash work in progress first.
@@ -51,8 +51,11 @@ install_part() {
 
 download() {  # wheels for the device's python, exact versions of this environment
   local dest=$1; shift
-  local specs=() name
-  for name in "$@"; do specs+=("$name==$(.venv/bin/python -m pip show "$name" | sed -n 's/^Version: //p')"); done
+  local specs=() name version
+  for name in "$@"; do  # this environment's version; the newest where it lacks the package
+    version=$(.venv/bin/python -m pip show "$name" 2> /dev/null | sed -n 's/^Version: //p')
+    specs+=("$name${version:+==$version}")
+  done
   .venv/bin/python -m pip download -q --no-deps --only-binary=:all: --python-version $PY \
     --implementation cp --platform manylinux_2_35_x86_64 --platform manylinux_2_28_x86_64 \
     --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64 -d "$dest" "${specs[@]}"
@@ -92,7 +95,5 @@ mkdir -p /tmp/amd64/partial && apt-get "${apt_opts[@]}" update
 echo libEGL.so.1 libGL.so.1 libGLX.so.0 libGLdispatch.so.0 libOpenGL.so.0 libX11.so.6 \
   libxcb.so.1 libXau.so.6 libXdmcp.so.6 libbsd.so.0 libmd.so.0 libusb-1.0.so.0 libudev.so.1 \
   libidn2.so.0 libunistring.so.2 libgomp.so.1 > .devpack/1/libs.txt
-for d in hdl32_pair ouster_os1_128_lb_n3; do
-  if [[ -d ../shared/data/$d ]]; then cp -r ../shared/data/$d .devpack/2/data/; fi
-done
+if [[ -d ../shared/data ]]; then cp -r ../shared/data/. .devpack/2/data/; fi  # ~12 MB
 du -sh .devpack/1 .devpack/2

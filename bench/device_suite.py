@@ -23,17 +23,19 @@ from pathlib import Path
 from results_io import RESULTS, Run
 
 DEVICE_RESULTS = RESULTS / "device_suite"
-# name, arguments of the full suite, arguments of --quick, cap in s (full)
+# name, arguments of the full suite, arguments of --quick, cap in s (full); the caps allow
+# for a bare machine's empty kernel cache (H100, 2026-11-27: the localize command's kernels
+# took > 90 s to compile, build-map's 57 s)
 SUITE = [
     ("bench_localize", ["--n", "100000", "1000000", "--m", "256", "1024", "--no-f16",
                         "--repeats", "3"], ["--quick"], 120),
     ("bench_commands", ["--commands", "localize", "--worlds", "office", "--duration", "5",
                         "--threads", str(os.cpu_count())],
-     ["--quick", "--commands", "localize", "--particles", "20000"], 90),
+     ["--quick", "--commands", "localize", "--particles", "20000"], 150),
     ("bench_slam", ["--particles", "10000", "100000", "--keyframes", "10"], ["--quick"], 90),
     ("bench_gicp", [], ["--quick"], 70),
     ("bench_odometry", ["--quick"], ["--quick"], 80),
-    ("bench_tsdf_fusion", [], ["--quick"], 90),
+    ("bench_tsdf_fusion", [], ["--quick"], 120),
 ]
 
 
@@ -94,14 +96,17 @@ def targets(benches: dict) -> list[dict]:
              "keyframes (bench_slam)",
              statistics.median(f["wall_ms"] for f in slam["frames"]) if slam else None, 50.0,
              "ms per frame")]
+    rows = [(*row, "") for row in rows]
     for key, label in (("localize-global", "global"), ("localize-gt", "tracking")):
         v = next((v for k, v in raw.items() if k.endswith(key)), {})
+        median = v.get("ms_update_p50")  # the mean holds the rare convergence checks
         rows.append((f"localize command, {label} (bench_commands)", v.get("ms_update_mean"),
-                     100.0, "ms per update"))
-    return [{"what": what, "measured": "not measured" if ms is None else f"{ms:.1f} {unit}",
-             "target": f"≤ {target:g} {unit}",
+                     100.0, "ms per update", "" if median is None else
+                     f" (median {median:.1f})"))
+    return [{"what": what, "measured": "not measured" if ms is None
+             else f"{ms:.1f} {unit}{extra}", "target": f"≤ {target:g} {unit}",
              "pass": "" if ms is None else ("pass" if ms <= target else "FAIL")}
-            for what, ms, target, unit in rows]
+            for what, ms, target, unit, extra in rows]
 
 
 def main() -> None:

@@ -28,20 +28,41 @@ def fresh_runtime_per_module():
         runtime.restart()
 
 
+@pytest.fixture(scope="session")
+def backend(request) -> str:
+    """The backend --backend chose. A module fixture that keeps fields (a map) for its tests
+    starts the runtime on it: `ti_runtime` switching backends would free those fields."""
+    return request.config.getoption("--backend")
+
+
 @pytest.fixture
-def ti_runtime(request):
+def ti_runtime(backend):
     """The Taichi runtime on the chosen backend (started once, restarted if a test switched it)."""
     from mcl3d.core import runtime
 
-    return runtime.init(request.config.getoption("--backend"))
+    return runtime.init(backend)
+
+
+class SharedData:
+    """../shared/data: `shared_data / "folder"` is that recording's folder, and the test skips
+    with the reason when the folder is absent (a machine may hold only some recordings)."""
+
+    def __init__(self, root: Path):
+        self.root = root
+
+    def __truediv__(self, name: str) -> Path:
+        path = self.root / name
+        if not path.exists():
+            pytest.skip(f"real recording {name} not found in {self.root}")
+        return path
 
 
 @pytest.fixture(scope="session")
-def shared_data() -> Path:
+def shared_data() -> SharedData:
     """../shared/data next to the repository; tests that use it skip when it is absent."""
     if not SHARED_DATA.is_dir():
         pytest.skip(f"real LiDAR data not found at {SHARED_DATA} (../shared/data next to the repo)")
-    return SHARED_DATA
+    return SharedData(SHARED_DATA)
 
 
 @pytest.fixture

@@ -22,10 +22,10 @@ IGNORED = ("wall_s", "output", "attempts", "ms_per_scan")  # what differs betwee
 
 
 @pytest.fixture(scope="module")
-def data(tmp_path_factory):
+def data(tmp_path_factory, backend):
     from mcl3d.core import runtime
 
-    runtime.init("cpu")
+    runtime.init(backend)
     d = tmp_path_factory.mktemp("batch")
     localize_world.write_log(d / "room.mcap", SCANS)
     localize_world.save_room_map(d / "room.tsdf", 0.1)

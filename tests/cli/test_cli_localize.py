@@ -14,10 +14,10 @@ EMPTY_STAMP = localize_world.START_NS + 2 * 100_000_000  # bare.mcap's empty sca
 
 
 @pytest.fixture(scope="module")
-def data(tmp_path_factory):
+def data(tmp_path_factory, backend):
     from mcl3d.core import runtime
 
-    runtime.init("cpu")
+    runtime.init(backend)
     d = tmp_path_factory.mktemp("localize")
     localize_world.write_log(d / "room.mcap", 12)
     localize_world.write_log(d / "bare.mcap", 6, odom=False, gt=False, empty_scans=(2,))

@@ -13,12 +13,12 @@ N_PARTICLES = 3000
 
 
 @pytest.fixture(scope="module")
-def two_rooms():
+def two_rooms(backend):
     """Two identical closed rooms side by side (the second 10.4 m along x) and a scanner in
     the first: every scan fits both rooms equally."""
     from mcl3d.core import runtime
 
-    runtime.init("cpu")
+    runtime.init(backend)
     room = localize_world.build_map(0.1)
     offset_blocks = int(room.coarse_dims[0]) + 2
     tsdf = localize_world.placed_together([(room, (0, 0, 0)), (room, (offset_blocks, 0, 0))],

@@ -52,13 +52,13 @@ def dense_candidates(tsdf, cfg) -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
-def maps():
+def maps(backend):
     """A mesh-built room (5 cm), the hall (10 cm) and a room fused from six scans (unknown
     voxels inside allocated blocks, carved free space)."""
     from mcl3d.core import runtime
     from mcl3d.maps.build import BuildConfig, MapGeometry, ScanFuser, new_map
 
-    runtime.init("cpu")
+    runtime.init(backend)
     room = localize_world.build_map()
     hall = localize_world.build_map(0.1, localize_world.hall_mesh())
     cfg = BuildConfig(voxel_size_m=0.1)

@@ -12,10 +12,10 @@ localize_world = pytest.importorskip("support.localize_world")
 
 
 @pytest.fixture(scope="module")
-def room():
+def room(backend):
     from mcl3d.core import runtime
 
-    runtime.init("cpu")
+    runtime.init(backend)
     return localize_world.build_map(), localize_world.Scanner(seed=3)
 
 
@@ -131,10 +131,10 @@ def test_kld_adapts_the_particle_count(room, ti_runtime):
 
 
 @pytest.fixture(scope="module")
-def hall():
+def hall(backend):
     from mcl3d.core import runtime
 
-    runtime.init("cpu")
+    runtime.init(backend)
     mesh = localize_world.hall_mesh()
     return localize_world.build_map(0.1, mesh), mesh
 

@@ -19,10 +19,10 @@ TIGHT = "0.05 0.05 0.02 0.573 0.573 1.146"  # m, deg
 
 
 @pytest.fixture(scope="module")
-def data(tmp_path_factory):
+def data(tmp_path_factory, backend):
     from mcl3d.core import runtime
 
-    runtime.init("cpu")
+    runtime.init(backend)
     d = tmp_path_factory.mktemp("presets")
     localize_world.write_log(d / "room.mcap", 10)
     localize_world.save_room_map(d / "room.tsdf", 0.1)

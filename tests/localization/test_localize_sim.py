@@ -85,12 +85,12 @@ def _simulate(path, trajectory: str, duration_s: float) -> None:
 
 
 @pytest.fixture(scope="session")
-def office_ground(tmp_path_factory):
+def office_ground(tmp_path_factory, backend):
     """A clean simulated `ground` log and the office mesh cropped around its route (5 cm)."""
     from mcl3d.core import runtime
     from mcl3d.sim.worlds import build_world
 
-    runtime.init("cpu")
+    runtime.init(backend)
     d = tmp_path_factory.mktemp("office_ground")
     world = build_world("office", seed=SEED).static  # the pipeline's world for this seed
     _simulate(d / "ground.mcap", "ground", TRACK_DURATION_S)
@@ -100,12 +100,12 @@ def office_ground(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
-def office_kidnap(tmp_path_factory):
+def office_kidnap(tmp_path_factory, backend):
     """A simulated `kidnap` log and the whole office's mesh map (10 cm)."""
     from mcl3d.core import runtime
     from mcl3d.sim.worlds import build_world
 
-    runtime.init("cpu")
+    runtime.init(backend)
     d = tmp_path_factory.mktemp("office_kidnap")
     world = build_world("office", seed=SEED).static
     _simulate(d / "kidnap.mcap", "kidnap", KIDNAP_DURATION_S)
