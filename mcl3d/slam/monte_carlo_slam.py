@@ -36,12 +36,13 @@ import numpy as np
 import taichi as ti
 
 from mcl3d.core.geometry import (
+    quat_to_rot,
     rotation_angle,
+    se3,
     se3_inverse,
     se3_log,
     transform_points,
 )
-from mcl3d.evaluation.consistency import weighted_pose_mean
 from mcl3d.kernels.scan_grid import MAX_K
 from mcl3d.kernels.slam import NEIGHBOURS, UNSCORED
 from mcl3d.maps.sparse_cells import unique_keys
@@ -57,6 +58,7 @@ from mcl3d.registration.preprocess import (
     plane_rows_to_covs,
     voxel_downsample,
 )
+from mcl3d.slam.cloud_mean import CloudMean
 from mcl3d.slam.elevator import ElevatorRide, in_elevator, open_sectors
 from mcl3d.slam.floor_guard import FloorGuard, stratified_prune_plan
 from mcl3d.slam.frame_store import SlamFrame, SlamFrames
@@ -66,6 +68,8 @@ from mcl3d.slam.slam_config import PredictionNoiseConfig, PruningConfig, SlamCon
 from mcl3d.slam.slam_particles import DRIFT_SUMS, SlamParticles
 
 HYPOTHESIS_MIN_SHARE = 0.01  # a grid cell holding this share of the weight is a hypothesis
+BINCOUNT_CELLS_PER_POSITION = 4  # count_hypotheses bins directly when the cloud's box has
+# at most this many cells per particle (else it sorts the cells)
 KEYFRAME_BUCKETS_PER_POINT = 2  # hash slots per keyframe point (rounded up to a power of 2)
 
 
@@ -160,7 +164,11 @@ def count_hypotheses(positions: np.ndarray, weights: np.ndarray, cell_m: float,
     cells = np.floor(positions / cell_m).astype(np.int64)
     cells -= cells.min(axis=0)
     span = cells.max(axis=0) + 1
-    if float(np.prod(span.astype(np.float64))) < 2.0**62:  # one sortable int64 per cell
+    volume = float(np.prod(span.astype(np.float64)))
+    if volume <= BINCOUNT_CELLS_PER_POSITION * len(cells):  # a compact cloud: no sort
+        flat = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]
+        mass = np.bincount(flat, weights=np.asarray(weights, np.float64))
+    elif volume < 2.0**62:  # one sortable int64 per cell
         cells = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]
         order = np.argsort(cells, kind="stable")
         starts = np.flatnonzero(np.r_[True, cells[order][1:] != cells[order][:-1]])
@@ -189,6 +197,7 @@ class MonteCarloSlam:
         self.gicp = BatchGicp(self.maps, max_groups=groups, max_rows=groups,
                               max_source_points=cfg.correction.points)
         self.particles = SlamParticles(cfg.particles, kf.capacity, self.gicp, cfg.seed)
+        self.cloud_mean = CloudMean(cfg.particles)
         lk = cfg.likelihood
         self.free_space = None if max(lk.free_space_cost, cfg.elevator.free_space_cost) <= 0 \
             else FreeSpace(
@@ -259,10 +268,11 @@ class MonteCarloSlam:
         watch.lap("prune")
         p = self.particles
         self._rep = int(np.argmax(post))
-        poses = p.current_poses()
-        T_rep = poses[self._rep].copy()  # a view would keep every particle's pose alive
-        hyp = count_hypotheses(poses[:, :3, 3], post, cfg.pruning.hypothesis_cell_m)
-        T_mean, cloud_cov = weighted_pose_mean(poses, post)
+        positions = p.positions()
+        T_rep = se3(quat_to_rot(p.quaternion(self._rep)), positions[self._rep])
+        hyp = count_hypotheses(positions, post, cfg.pruning.hypothesis_cell_m)
+        T_mean, cloud_cov = self.cloud_mean(p.q_cur, p.t_cur, post,
+                                            se3(T_rep[:3, :3], post @ positions))
         loop_slots = list(loops.get(int(origin[self._rep]), ()))
         kf_poses = p.keyframe_poses(self._rep)[loop_slots] if loop_slots else []
         watch.lap("estimate")
