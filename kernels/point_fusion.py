@@ -77,5 +77,5 @@ def points_fuse_band(m: ti.template(), pts: ti.types.ndarray(dtype=vec3, ndim=1)
         bid = UNKNOWN
         for i in range(run * run_length, ti.min(n, (run + 1) * run_length)):
             point_band(m, geo, pts[i], nrm[i], steps[i], behind_m, k_w, n_s, slot_g,
-                       slot_wd, slot_w, cb, bid)
+                       slot_wd, slot_w, cb, bid, 1.0)
         flush_slots(m, geo, slot_g, slot_wd, slot_w)

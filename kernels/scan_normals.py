@@ -16,6 +16,12 @@ or a ceiling far off) or nearest the ray (a steep one: a pole). It needs MIN_NEI
 a normal get zeros: the fusion kernels then use the ray direction (projective distance).
 
 The scan's own order of points is not needed (clouds with dropped returns, any layout).
+
+Near the sensor neighbouring pixels lie far closer than a map voxel, and their windows
+differ by one column: in each three columns a point beside the middle one takes the normal
+of the middle column's point when that lies within `share_m` (`share_columns` before
+`estimate`, which then skips it, and `copy_shared` after), a third of the work where rays
+are denser than the map can use.
 """
 
 import taichi as ti
@@ -63,6 +69,44 @@ def project(pts: ti.types.ndarray(dtype=vec3, ndim=1),
             px = r * width + column_of(p, width)
             ti.atomic_min(image[px], i)
         pixel[i] = px
+
+
+@ti.kernel
+def share_columns(pts: ti.types.ndarray(dtype=vec3, ndim=1),
+                  pixel: ti.types.ndarray(dtype=ti.i32, ndim=1), n: ti.i32, width: ti.i32,
+                  image: ti.types.ndarray(dtype=ti.i32, ndim=1), share_m: ti.f32,
+                  source: ti.types.ndarray(dtype=ti.i32, ndim=1)):
+    """source[i]: the point whose normal point i takes (in the middle column of its three,
+    columns 3k..3k+2, within share_m), else -1; such points get pixel -1, so `estimate`
+    skips them."""
+    for i in range(n):
+        src = -1
+        px = pixel[i]
+        row = px // width
+        col = px - row * width
+        mid = (col // 3) * 3 + 1
+        if px >= 0 and col != mid and mid < width:
+            j = image[row * width + mid]
+            if j != EMPTY:  # noqa: SIM102 (Taichi's `and` does not short-circuit)
+                if (pts[j] - pts[i]).norm_sqr() <= share_m * share_m:
+                    src = j
+                    pixel[i] = -1
+        source[i] = src
+
+
+@ti.kernel
+def copy_shared(pts: ti.types.ndarray(dtype=vec3, ndim=1),
+                source: ti.types.ndarray(dtype=ti.i32, ndim=1), n: ti.i32,
+                normals: ti.types.ndarray(dtype=vec3, ndim=1)):
+    """The normals `share_columns` assigned, facing the sensor from each point (zeros
+    stay)."""
+    for i in range(n):
+        j = source[i]
+        if j >= 0:
+            e = normals[j]
+            if e.dot(pts[i]) > 0.0:
+                e = -e
+            normals[i] = e
 
 
 @ti.func

@@ -234,15 +234,16 @@ def band_patch(m: ti.template(), geo: ti.template(), p: vec3, nr: vec3, k: ti.i3
 def point_band(m: ti.template(), geo: ti.template(), p: vec3, nr: vec3, k: ti.i32,
                behind_m: ti.f32, k_w: ti.f32, n_s: ti.i32, slot_g: ti.template(),
                slot_wd: ti.template(), slot_w: ti.template(), cb: ti.template(),
-               bid: ti.template()):
+               bid: ti.template(), count: ti.f32):
     """A point's band of half-width k: a patch straight into the map, or a one-column band
-    into the run's slots (column_into_slots), flushed by the caller at the run's end."""
+    of weight `count` (the points a bundle stands for, kernels.tsdf_fusion) into the run's
+    slots (column_into_slots), flushed by the caller at the run's end."""
     if k > 0:
         e1, e2 = tangent_basis(nr)
         band_patch(m, geo, p, nr, k, behind_m, k_w, e1, e2)
     else:
         column_into_slots(m, geo, p, nr, behind_m, k_w, n_s, slot_g, slot_wd, slot_w, cb,
-                          bid)
+                          bid, count)
 
 
 # --------------------------------------------------- one-column bands of a run of points
@@ -250,8 +251,9 @@ def point_band(m: ti.template(), geo: ti.template(), p: vec3, nr: vec3, k: ti.i3
 def column_into_slots(m: ti.template(), geo: ti.template(), p: vec3, nr: vec3,
                       behind_m: ti.f32, k_w: ti.f32, n_s: ti.i32, slot_g: ti.template(),
                       slot_wd: ti.template(), slot_w: ti.template(), cb: ti.template(),
-                      bid: ti.template()):
-    """The one-column band of world point p added to a run's slots (registers): slot j holds
+                      bid: ti.template(), count: ti.f32):
+    """The one-column band of world point p, with weight `count` (the points a bundle
+    stands for, kernels.tsdf_fusion), added to a run's slots (registers): slot j holds
     the voxel of depth sample j (slot_g[j]) and its sums (slot_wd[j], slot_w[j]); a slot
     goes to the map (flush_slot) when this point's sample j leaves its voxel. cb, bid: the
     block last flushed and its pool id, looked up again only when the block changes."""
@@ -269,7 +271,7 @@ def column_into_slots(m: ti.template(), geo: ti.template(), p: vec3, nr: vec3,
                 v = center_at(geo, g) - p
                 d = v.dot(nr)
                 if -behind_m <= d <= trunc:
-                    w = exp_nonpositive(k_w * v.dot(v))
+                    w = count * exp_nonpositive(k_w * v.dot(v))
                     same = (slot_g[j, 0] == g[0] and slot_g[j, 1] == g[1]
                             and slot_g[j, 2] == g[2])
                     if slot_w[j] > 0.0 and not same:

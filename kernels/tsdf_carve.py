@@ -19,9 +19,10 @@ from mcl3d.kernels.tsdf_lookup import (
 
 
 @ti.func
-def accumulate_free(m: ti.template(), b: ti.i32, g: ivec3):
-    """Count a ray passing through voxel g of block b in front of its band (free space)."""
-    ti.atomic_add(m.free_hits[b, g[0] & 7, g[1] & 7, g[2] & 7], 1.0)
+def accumulate_free(m: ti.template(), b: ti.i32, g: ivec3, rays: ti.f32):
+    """Count `rays` rays (a bundle's, kernels.tsdf_fusion) passing through voxel g of
+    block b in front of their band (free space)."""
+    ti.atomic_add(m.free_hits[b, g[0] & 7, g[1] & 7, g[2] & 7], rays)
 
 
 @ti.func
@@ -35,9 +36,9 @@ def lowest_bit(i: ti.i32) -> ti.i32:
 
 @ti.func
 def carve_ray(m: ti.template(), geo: ti.template(), a: vec3, u: vec3, length: ti.f32,
-              stop_after: ti.f32):
+              stop_after: ti.f32, rays: ti.f32):
     """Free space along a + s u, s in [0, length): unallocated blocks become FREE as a
-    whole, voxels of allocated blocks count a hit each, sampled a voxel apart; past
+    whole, voxels of allocated blocks count `rays` hits each, sampled a voxel apart; past
     stop_after the walk ends in the first unallocated block it meets. Blocks become FREE
     only in tiles that exist: `claim_tiles_along` claimed them in the allocation pass.
 
@@ -74,7 +75,7 @@ def carve_ray(m: ti.template(), geo: ti.template(), a: vec3, u: vec3, length: ti
             b = cell_at(m, geo, bc)
             if b >= 0:
                 if (g != last).any():
-                    accumulate_free(m, b, g)
+                    accumulate_free(m, b, g, rays)
                     last = g
                 s += vox
             elif s > stop_after:
@@ -121,14 +122,15 @@ def dense_range(geo: ti.template(), spacing_rad: ti.f32) -> ti.f32:
 
 @ti.func
 def carve_in_front(m: ti.template(), geo: ti.template(), i: ti.i32, o: vec3, u: vec3, r: ti.f32,
-                   c: ti.f32, s_dense: ti.f32):
-    """Carve ray i of a scan (sensor o, unit direction u, range r, |cos incidence| c) from
-    where it comes within truncation of its surface plane back toward the sensor. Near the
-    sensor only a subset of the rays carves: ray i counts voxels from s_dense / lowbit(i)
-    on and walks unallocated blocks from twice that on (see tsdf_fusion.scan_fuse)."""
+                   c: ti.f32, s_dense: ti.f32, rays: ti.f32):
+    """Carve ray i of a scan (sensor o, unit direction u, range r, |cos incidence| c), for
+    `rays` rays (a bundle's), from where it comes within truncation of its surface plane
+    back toward the sensor. Near the sensor only a subset of the rays carves: ray i counts
+    voxels from s_dense / lowbit(i) on and walks unallocated blocks from twice that on (see
+    tsdf_fusion.scan_fuse)."""
     s_free = r - geo.scale[2] / c
     s_voxels = s_dense / ti.cast(lowest_bit(i), ti.f32)
-    carve_ray(m, geo, o + s_free * u, -u, s_free - s_voxels, s_free - 2.0 * s_voxels)
+    carve_ray(m, geo, o + s_free * u, -u, s_free - s_voxels, s_free - 2.0 * s_voxels, rays)
 
 
 @ti.func

@@ -6,7 +6,7 @@ point_fusion. The map container is described in `tsdf_lookup`.
 
 import taichi as ti
 
-from mcl3d.kernels.se3 import quat_conj, quat_exp, quat_log, quat_mul, quat_normalize, quat_rotate
+from mcl3d.kernels.se3 import quat_conj, quat_log, quat_mul, quat_normalize, quat_rotate
 from mcl3d.kernels.spread import spread_item, spread_length
 from mcl3d.kernels.tsdf_band import (
     allocate_patch,
@@ -22,14 +22,20 @@ from mcl3d.kernels.tsdf_lookup import (
     UNKNOWN,
     fixed_value,
     geometry,
+    grid_at,
     ivec3,
     vec3,
     vec4,
     voxel_dw_at,
 )
 
+ivec4 = ti.math.ivec4
 
 # ----------------------------------------------------------------------------- scans
+BUNDLE_COS = 0.95  # consecutive one-column rays in one voxel bundle when their normals
+# agree within 18 degrees (a crease's two faces stay apart)
+
+
 @ti.func
 def scan_motion(q0: vec4, q1: vec4) -> vec3:
     """Rotation vector from the scan's start to its end orientation (shortest way): the
@@ -38,6 +44,23 @@ def scan_motion(q0: vec4, q1: vec4) -> vec3:
     if q0.dot(q1) < 0.0:
         q1s = -q1
     return quat_log(quat_mul(quat_conj(q0), q1s))
+
+
+@ti.func
+def scan_quat_exp(w: vec3) -> vec4:
+    """quat_exp (kernels.se3) for the rotation within one scan: sin and cos of the half
+    angle h by their Taylor polynomials for h < 0.5 rad (truncation errors under 2e-11,
+    below f32 rounding), as ti.sin / ti.cos beyond: on cpu those are libm calls, a fifth of
+    the allocation pass when taken per point."""
+    h2 = 0.25 * w.dot(w)
+    k = 0.5 * (1.0 - h2 / 6.0 * (1.0 - h2 / 20.0 * (1.0 - h2 / 42.0 * (1.0 - h2 / 72.0))))
+    c = 1.0 - h2 / 2.0 * (1.0 - h2 / 12.0 * (1.0 - h2 / 30.0 * (1.0 - h2 / 56.0 * (
+        1.0 - h2 / 90.0))))
+    if h2 >= 0.25:
+        theta = ti.sqrt(4.0 * h2)
+        k = ti.sin(0.5 * theta) / theta
+        c = ti.cos(0.5 * theta)
+    return vec4(k * w[0], k * w[1], k * w[2], c)
 
 
 @ti.func
@@ -51,7 +74,7 @@ def ray_setup(p_l: vec3, n_l: vec3, alpha: ti.f32, q0: vec4, t0: vec3, delta: ve
     """
     q = q0
     if (delta != 0.0).any():
-        q = quat_mul(q0, quat_exp(alpha * delta))  # slerp, as pose_interpolate
+        q = quat_mul(q0, scan_quat_exp(alpha * delta))  # slerp, as pose_interpolate
     q = quat_normalize(q)
     t = t0 + alpha * (t1 - t0)
     p = quat_rotate(q, p_l) + t
@@ -77,6 +100,29 @@ def point_ok(p_l: vec3, min_range: ti.f32, max_range: ti.f32) -> bool:
     return (r >= min_range) and (r <= max_range) and (r == r)
 
 
+@ti.func
+def bundle_key(geo: ti.template(), spacing_rad: ti.f32, rp: vec4, rn: vec4) -> ivec4:
+    """A ray's voxel (rp, rn as in ray_p, ray_n) and 1 when it may join a bundle (fused,
+    with a one-column band), else 0."""
+    may = rn[3] > 0.0 and footprint_steps(geo, rp[3], spacing_rad) == 0
+    g = ti.cast(ti.floor(grid_at(geo, rp.xyz)), ti.i32)
+    return ivec4(g[0], g[1], g[2], 1 if may else 0)
+
+
+@ti.func
+def joins(prev_key: ivec4, prev_n: vec4, key: ivec4, rn: vec4) -> bool:
+    """Whether a ray continues the bundle of the ray before it in the scan (keys from
+    bundle_key): both may bundle, their points in one voxel, their normals within
+    BUNDLE_COS."""
+    return key[3] == 1 and (key == prev_key).all() and prev_n.xyz.dot(rn.xyz) >= BUNDLE_COS
+
+
+@ti.func
+def bundle_point(head: vec3, sum_dp: vec3, sum_n: vec3, count: ti.f32):
+    """A bundle's mean point and unit mean normal."""
+    return head + sum_dp / count, sum_n.normalized()
+
+
 @ti.kernel
 def scan_allocate(m: ti.template(), pts: ti.types.ndarray(dtype=vec3, ndim=1),
                   nrm: ti.types.ndarray(dtype=vec3, ndim=1),
@@ -86,16 +132,20 @@ def scan_allocate(m: ti.template(), pts: ti.types.ndarray(dtype=vec3, ndim=1),
                   use_normals: ti.template(), ray_p: ti.types.ndarray(dtype=vec4, ndim=1),
                   ray_n: ti.types.ndarray(dtype=vec4, ndim=1), run_length: ti.i32,
                   threads: ti.i32, carve: ti.template()):
-    """Pass 1 of a scan: allocate the blocks that hold samples of each point's band patch
-    (exactly those scan_fuse visits), testing as few samples as that takes.
+    """Pass 1 of a scan: allocate the blocks that hold samples of each band patch (exactly
+    those scan_fuse visits: a bundle's column at its mean, see scan_fuse), testing as few
+    samples as that takes.
 
     Each point's ray setup (deskewed world point, normal) is kept for pass 2, which would
     otherwise repeat it: ray_p[i] = (world point, range), ray_n[i] = (normal facing the
     sensor, |cos incidence|), the latter 0 for a point that is skipped (out of range).
 
-    Runs of run_length consecutive points are spread over the cpu threads (kernels.spread).
-    With `carve`, also claims the coarse-index tiles that scan_fuse's carving will mark
-    FREE blocks in. Idempotent: the host relaunches it while tiles were missed.
+    Runs of run_length consecutive points are spread over the cpu threads (kernels.spread);
+    a run's bundles are those whose first ray is in it (the rays next to the run, which
+    another thread keeps, are set up again here). With `carve`, also claims the
+    coarse-index tiles that scan_fuse's carving will mark FREE blocks in (along the rays
+    that carve: not those a bundle's first ray carves for). Idempotent: the host
+    relaunches it while tiles were missed.
     """
     delta = scan_motion(q0, q1)
     n_runs = (n + run_length - 1) // run_length
@@ -104,17 +154,84 @@ def scan_allocate(m: ti.template(), pts: ti.types.ndarray(dtype=vec3, ndim=1),
         if run >= 0:
             geo = geometry(m)
             s_dense = dense_range(geo, spacing_rad)
-            for i in range(run * run_length, ti.min(n, (run + 1) * run_length)):
-                ray_n[i] = vec4(0.0)
-                if point_ok(pts[i], min_range, max_range):
-                    p, o, u, r, nr, c = ray_setup(pts[i], nrm[i], alpha[i], q0, t0, delta, t1,
-                                                  use_normals)
-                    ray_p[i] = vec4(p, r)
-                    ray_n[i] = vec4(nr, c)
-                    allocate_patch(m, geo, p, nr, footprint_steps(geo, r, spacing_rad),
-                                   behind_m)
-                    if ti.static(carve):
-                        claim_carve_tiles(m, geo, i, o, u, r, c, s_dense)
+            allocate_run(m, geo, pts, nrm, alpha, run * run_length,
+                         ti.min(n, (run + 1) * run_length), n, q0, t0, delta, t1, min_range,
+                         max_range, spacing_rad, behind_m, use_normals, ray_p, ray_n, s_dense,
+                         carve)
+
+
+@ti.func
+def allocate_run(m: ti.template(), geo: ti.template(), pts: ti.template(), nrm: ti.template(),
+                 alpha: ti.template(), first: ti.i32, end: ti.i32, n: ti.i32, q0: vec4,
+                 t0: vec3, delta: vec3, t1: vec3, min_range: ti.f32, max_range: ti.f32,
+                 spacing_rad: ti.f32, behind_m: ti.f32, use_normals: ti.template(),
+                 ray_p: ti.template(), ray_n: ti.template(), s_dense: ti.f32,
+                 carve: ti.template()):
+    """One thread's run of scan_allocate: rays [first, end) set up and kept, the patches of
+    the wide rays and of the bundles starting in the run allocated. One loop walks from the
+    ray before the run (it only tells whether the first ray continues a bundle) to the end
+    of the last open bundle, and each heavy function has one call site: a shader compiler
+    (Mesa's lavapipe) takes minutes over a kernel that inlines them three times."""
+    prev_key = ivec4(0)
+    prev_n = vec4(0.0)
+    head = vec3(0.0)  # the open bundle: its first point, sums and count (0: none)
+    sum_dp = vec3(0.0)
+    sum_n = vec3(0.0)
+    count = 0.0
+    i = ti.max(first - 1, 0)
+    while i <= n and (i < end or count > 0.0):
+        rp = vec4(0.0)
+        rn = vec4(0.0)
+        o = vec3(0.0)
+        u = vec3(0.0)
+        if i < n:  # noqa: SIM102 (Taichi's `and` evaluates both: pts[n] is past the end)
+            if point_ok(pts[i], min_range, max_range):
+                p, o, u, r, nr, c = ray_setup(pts[i], nrm[i], alpha[i], q0, t0, delta, t1,
+                                              use_normals)
+                rp = vec4(p, r)
+                rn = vec4(nr, c)
+        inside = first <= i < end
+        if inside:
+            if rn[3] > 0.0:
+                ray_p[i] = rp
+            ray_n[i] = rn
+        key = bundle_key(geo, spacing_rad, rp, rn)
+        joined = joins(prev_key, prev_n, key, rn)
+        patches = 0  # this ray closes a bundle (its column) and/or is a wide ray (its patch)
+        p0 = vec3(0.0)  # the closed bundle's, else the wide ray's
+        n0 = vec3(0.0)
+        k0 = 0
+        if i >= first:
+            if joined:
+                if count > 0.0:
+                    sum_dp += rp.xyz - head
+                    sum_n += rn.xyz
+                    count += 1.0
+            else:
+                if count > 0.0:
+                    p0, n0 = bundle_point(head, sum_dp, sum_n, count)
+                    patches = 1
+                    count = 0.0
+                if inside and rn[3] > 0.0:
+                    if ti.static(carve):  # a bundle carves along its first ray
+                        claim_carve_tiles(m, geo, i, o, u, rp[3], rn[3], s_dense)
+                    k = footprint_steps(geo, rp[3], spacing_rad)
+                    if k > 0:
+                        if patches == 0:
+                            p0, n0, k0 = rp.xyz, rn.xyz, k
+                        patches += 1
+                    else:
+                        head = rp.xyz
+                        sum_dp = vec3(0.0)
+                        sum_n = rn.xyz
+                        count = 1.0
+        for e in range(patches):  # the second is always the wide ray
+            if e == 1:
+                p0, n0, k0 = rp.xyz, rn.xyz, footprint_steps(geo, rp[3], spacing_rad)
+            allocate_patch(m, geo, p0, n0, k0, behind_m)
+        prev_key = key
+        prev_n = rn
+        i += 1
 
 
 @ti.kernel
@@ -145,12 +262,17 @@ def scan_fuse(m: ti.template(), ray_p: ti.types.ndarray(dtype=vec4, ndim=1),
     walks backwards, from its band toward the sensor, so its own surface blocks come first.
 
     Near rays are denser than voxels (a one-column band, footprint_steps = 0), so
-    consecutive points of a scan line mostly hit the same voxels: one thread takes a run
-    of run_length consecutive points and sums their one-column bands in registers (slot j
-    holds depth sample j), writing a voxel's sums once, when the next point's sample j
-    leaves it. The sums are those of updating voxel by voxel, only added in another order,
-    so run_length changes no result beyond f32 rounding. Runs are spread over the cpu
-    threads as in scan_allocate.
+    consecutive rays of a scan line often end in one voxel: such a bundle (`joins`) fuses
+    once, as voxblox's merged integration does, as one point at its mean with its mean
+    normal and its count as weight (the points' spread within a voxel is below what the
+    map resolves; the mean keeps their noise averaged), and carves once, along its first
+    ray, counting its rays as hits. Which rays bundle depends on the scan alone, not on
+    runs or threads. One thread takes a run of run_length consecutive rays (a bundle
+    belongs to the run of its first ray, and may reach past it) and sums the one-column
+    bands in registers (slot j holds depth sample j), writing a voxel's sums once, when
+    the next band's sample j leaves it. The sums are those of updating voxel by voxel,
+    only added in another order, so run_length changes no result beyond f32 rounding.
+    Runs are spread over the cpu threads as in scan_allocate.
     """
     k_w = -0.5 / (sigma_weight_m * sigma_weight_m)
     n_runs = (n + run_length - 1) // run_length
@@ -158,17 +280,18 @@ def scan_fuse(m: ti.template(), ray_p: ti.types.ndarray(dtype=vec4, ndim=1),
         run = spread_item(index, n_runs, threads)
         if run >= 0:
             fuse_run(m, ray_p, ray_n, alpha, run * run_length,
-                     ti.min(n, (run + 1) * run_length), t0, t1, spacing_rad, behind_m, carve,
-                     k_w)
+                     ti.min(n, (run + 1) * run_length), n, t0, t1, spacing_rad, behind_m,
+                     carve, k_w)
 
 
 @ti.func
 def fuse_run(m: ti.template(), ray_p: ti.template(), ray_n: ti.template(),
-             alpha: ti.template(), first: ti.i32, end: ti.i32, t0: vec3, t1: vec3,
+             alpha: ti.template(), first: ti.i32, end: ti.i32, n: ti.i32, t0: vec3, t1: vec3,
              spacing_rad: ti.f32, behind_m: ti.f32, carve: ti.template(), k_w: ti.f32):
-    """One thread's run of points [first, end) of scan_fuse: each point carves its ray,
-    then fills its band, a patch straight into the map or, for a one-column band, the
-    run's slots (kept in registers until the run ends)."""
+    """One thread's run of rays [first, end) of scan_fuse: each ray with a patch carves and
+    fills it straight into the map; each bundle of one-column rays starting in the run
+    carves and fills its column into the run's slots (kept in registers until the run
+    ends)."""
     geo = geometry(m)  # once per run: the map's geometry is read at run time
     n_s = band_samples(geo, behind_m)
     s_dense = dense_range(geo, spacing_rad)
@@ -178,19 +301,69 @@ def fuse_run(m: ti.template(), ray_p: ti.template(), ray_n: ti.template(),
     slot_w = ti.Vector.zero(ti.f32, n_max)
     cb = ivec3(-(1 << 30))  # the block of the last flushed slot and its id
     bid = UNKNOWN
-    for i in range(first, end):
-        c = ray_n[i][3]
-        if c > 0.0:
-            p = ray_p[i].xyz
-            r = ray_p[i][3]
-            nr = ray_n[i].xyz
-            o = t0 + alpha[i] * (t1 - t0)  # as ray_setup
-            u = (p - o) / ti.max(r, 1e-9)
+    prev_key = ivec4(0)
+    prev_n = vec4(0.0)
+    head = 0  # the open bundle: its first ray, sums and count (0: none)
+    sum_dp = vec3(0.0)
+    sum_n = vec3(0.0)
+    count = 0.0
+    i = ti.max(first - 1, 0)  # walked as in allocate_run, with the same single call sites
+    while i <= n and (i < end or count > 0.0):
+        rp = vec4(0.0)
+        rn = vec4(0.0)
+        if i < n:
+            rp = ray_p[i]
+            rn = ray_n[i]
+        inside = first <= i < end
+        key = bundle_key(geo, spacing_rad, rp, rn)
+        joined = joins(prev_key, prev_n, key, rn)
+        bands = 0  # this ray closes a bundle and/or is a wide ray: their carving and band
+        h0 = head  # the closed bundle's (its first ray carves for all), else the wide ray's
+        p0 = vec3(0.0)
+        n0 = vec3(0.0)
+        w0 = count
+        k = 0
+        if i >= first:
+            if joined:
+                if count > 0.0:
+                    sum_dp += rp.xyz - ray_p[head].xyz
+                    sum_n += rn.xyz
+                    count += 1.0
+            else:
+                if count > 0.0:
+                    p0, n0 = bundle_point(ray_p[head].xyz, sum_dp, sum_n, count)
+                    w0 = count
+                    bands = 1
+                    count = 0.0
+                if inside and rn[3] > 0.0:
+                    k = footprint_steps(geo, rp[3], spacing_rad)
+                    if k > 0:
+                        bands += 1
+                    else:
+                        head = i
+                        sum_dp = vec3(0.0)
+                        sum_n = rn.xyz
+                        count = 1.0
+        for e in range(bands):
+            k_e = 0
+            if e == bands - 1 and k > 0:  # the wide ray comes last
+                h0, p0, n0, w0, k_e = i, rp.xyz, rn.xyz, 1.0, k
             if ti.static(carve):
-                carve_in_front(m, geo, i, o, u, r, c, s_dense)
-            point_band(m, geo, p, nr, footprint_steps(geo, r, spacing_rad), behind_m, k_w,
-                       n_s, slot_g, slot_wd, slot_w, cb, bid)
+                o, u = ray_origin(ray_p, alpha, h0, t0, t1)
+                carve_in_front(m, geo, h0, o, u, ray_p[h0][3], ray_n[h0][3], s_dense, w0)
+            point_band(m, geo, p0, n0, k_e, behind_m, k_w, n_s, slot_g, slot_wd, slot_w, cb,
+                       bid, w0)
+        prev_key = key
+        prev_n = rn
+        i += 1
     flush_slots(m, geo, slot_g, slot_wd, slot_w)
+
+
+@ti.func
+def ray_origin(ray_p: ti.template(), alpha: ti.template(), i: ti.i32, t0: vec3, t1: vec3):
+    """Sensor position and unit direction of ray i (as ray_setup)."""
+    o = t0 + alpha[i] * (t1 - t0)
+    return o, (ray_p[i].xyz - o) / ti.max(ray_p[i][3], 1e-9)
 
 
 # ------------------------------------------------------------------- end of a build

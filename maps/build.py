@@ -33,6 +33,8 @@ CPU_RUN_LENGTH = 64
 GPU_RUN_LENGTH = 4
 PERCENTILE_SAMPLES = 8192
 SENSOR_ORIGIN = np.zeros((1, 3))  # a scan's normals face the sensor
+SHARE_NORMAL_VOXELS = 0.5  # range-image neighbours this close (in voxels) share a normal:
+# at voxel scale their windows, a column apart, give the same plane (maps/scan_normals)
 
 
 class BuildConfig(Section):
@@ -227,13 +229,15 @@ class ScanFuser:
     def normals(self, points_l: np.ndarray, rings: np.ndarray | None) -> np.ndarray:
         """Unit normals facing the sensor (zeros: none found, that point fuses
         projectively): with normals auto on the device, from the range image when the scan
-        has one, else from the k nearest in a voxel neighbourhood; with knn (or k beyond the
-        device search) from the k nearest neighbours on the host."""
+        has one (pixels within SHARE_NORMAL_VOXELS of the middle one of their three columns
+        take its normal), else from the k nearest in a voxel neighbourhood; with knn (or k
+        beyond the device search) from the k nearest neighbours on the host."""
         k = self.config.normal_neighbors
         if self.config.normals == "auto":
             shape = layout(points_l, rings)
             if shape is not None:
-                return self._range_normals(points_l, rings, shape)
+                return self._range_normals(points_l, rings, shape,
+                                           SHARE_NORMAL_VOXELS * self.config.voxel_size_m)
             if fits(points_l, k):
                 return voxel_normals_of(points_l, k)
         return oriented_normals(points_l, k, SENSOR_ORIGIN, self.config.orientation_cell_m)

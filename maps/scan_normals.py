@@ -79,9 +79,11 @@ class RangeImageNormals:
     def __init__(self):
         self._image = None
 
-    def __call__(self, points: np.ndarray, rings: np.ndarray, shape: ImageLayout
-                 ) -> np.ndarray:
-        """(n, 3) float32 unit normals facing the sensor, zeros where none was found."""
+    def __call__(self, points: np.ndarray, rings: np.ndarray, shape: ImageLayout,
+                 share_m: float = 0.0) -> np.ndarray:
+        """(n, 3) float32 unit normals facing the sensor, zeros where none was found; with
+        share_m > 0 a point within share_m of its neighbour in the middle column of its
+        three takes that one's normal (kernels.scan_normals)."""
         pts = np.ascontiguousarray(points, dtype=np.float32).reshape(-1, 3)
         n = len(pts)
         size = shape.width * shape.height
@@ -92,7 +94,14 @@ class RangeImageNormals:
         normals = np.empty((n, 3), np.float32)
         scan_normals.clear_image(self._image, size)
         scan_normals.project(pts, rows, n, shape.width, shape.height, pixel, self._image)
+        source = None
+        if share_m > 0.0:
+            source = np.empty(n, np.int32)
+            scan_normals.share_columns(pts, pixel, n, shape.width, self._image, share_m,
+                                       source)
         scan_normals.estimate(pts, pixel, n, shape.width, shape.height, self._image,
                               shape.row_reach, shape.n_cols, shape.col_step, shape.gate_per_m,
                               shape.gate_min_m, normals)
+        if source is not None:
+            scan_normals.copy_shared(pts, source, n, normals)
         return normals

@@ -85,10 +85,12 @@ def _grid(tsdf):
     return lambda x: np.floor((x - o0) / v).astype(int)
 
 
-def _column(origin, point, tsdf, behind):
-    """The band samples of a one-column point (projective: along the reversed ray)."""
+def _column(origin, point, tsdf, behind, n=None):
+    """The band samples of a one-column point along its normal n (projective without one:
+    along the reversed ray)."""
     v, trunc = tsdf.voxel_size_m, tsdf.truncation_m
-    n = -(point - origin) / np.linalg.norm(point - origin)
+    if n is None:
+        n = -(point - origin) / np.linalg.norm(point - origin)
     samples = int(np.ceil((behind + trunc) / v)) + 1
     return [point + min(-behind + j * v, trunc) * n for j in range(samples)], n
 
@@ -129,11 +131,12 @@ def _lowest_bit(i):
     return min(i & -i, 1 << 20) if i > 0 else 1 << 20
 
 
-def _band_reference(origin, point, tsdf, behind, sigma):
-    """{voxel: (d, w)} of one point's one-column band."""
+def _band_reference(origin, point, tsdf, behind, sigma, n=None, count=1):
+    """{voxel: (d, w)} of one point's one-column band (a bundle's: its mean point and
+    normal, its count times the weight)."""
     v, trunc = tsdf.voxel_size_m, tsdf.truncation_m
     o0, grid = np.asarray(tsdf.origin_m), _grid(tsdf)
-    column, n = _column(origin, point, tsdf, behind)
+    column, n = _column(origin, point, tsdf, behind, n)
     band, last = {}, None
     for x in column:
         g = grid(x)
@@ -142,27 +145,57 @@ def _band_reference(origin, point, tsdf, behind, sigma):
             c = o0 + (g + 0.5) * v
             d = np.dot(c - point, n)
             if -behind <= d <= trunc:
-                band[tuple(g)] = d, np.exp(-0.5 * np.dot(c - point, c - point) / sigma**2)
+                band[tuple(g)] = d, count * np.exp(-0.5 * np.dot(c - point, c - point)
+                                                   / sigma**2)
     return band
+
+
+def _bundles(origin, points, tsdf, spacing):
+    """(mean point, unit mean normal, count, index of its first point) of each bundle of
+    projective one-column points: consecutive points in one voxel whose normals agree
+    within BUNDLE_COS (scan_fuse)."""
+    from mcl3d.kernels.tsdf_fusion import BUNDLE_COS
+
+    grid = _grid(tsdf)
+    groups, firsts = [], []
+    for i, p in enumerate(points):
+        r = np.linalg.norm(p - origin)
+        assert int(r * spacing / tsdf.voxel_size_m) == 0  # a one-column band
+        n = -(p - origin) / r
+        last = groups[-1][-1] if groups else None
+        if last is not None and (grid(p) == grid(last[0])).all() and n @ last[1] >= BUNDLE_COS:
+            groups[-1].append((p, n))
+        else:
+            groups.append([(p, n)])
+            firsts.append(i)
+    out = []
+    for g, first in zip(groups, firsts, strict=True):
+        n = np.sum([n for _, n in g], axis=0)
+        out.append((np.mean([p for p, _ in g], axis=0), n / np.linalg.norm(n), len(g), first))
+    return out
 
 
 def _scan_reference(origin, points, tsdf, behind, sigma, spacing=0.0):
     """Float64 re-implementation of scan_allocate + scan_fuse for one-column points.
 
-    Band: per voxel the sums of w*d and w over all points; free-space hits: per voxel the
-    number of rays that cross it (near the sensor only a subset of them: see scan_fuse).
+    Band: per voxel the sums of w*d and w over all bundles; free-space hits: per voxel the
+    number of rays that cross it, a bundle's all along its first ray (near the sensor only
+    a subset of them: see scan_fuse).
     """
     grid = _grid(tsdf)
-    blocks = {tuple(grid(x) >> 3) for p in points for x in _column(origin, p, tsdf, behind)[0]}
+    bundles = _bundles(origin, points, tsdf, spacing)
+    blocks = {tuple(grid(x) >> 3) for p, n, *_ in bundles
+              for x in _column(origin, p, tsdf, behind, n)[0]}
     s_dense = 0.5 * tsdf.voxel_size_m / spacing if spacing > 0 else 0.0
     sums, free_hits, free_blocks = {}, {}, set()
-    for i, p in enumerate(points):
-        for g, (d, w) in _band_reference(origin, p, tsdf, behind, sigma).items():
+    for p, n, count, first in bundles:
+        for g, (d, w) in _band_reference(origin, p, tsdf, behind, sigma, n, count).items():
             wd0, w0 = sums.get(g, (0.0, 0.0))
             sums[g] = wd0 + w * d, w0 + w
-        hits, free = _carve_reference(origin, p, tsdf, blocks, s_dense / _lowest_bit(i))
+        hits, free = _carve_reference(origin, points[first], tsdf, blocks,
+                                      s_dense / _lowest_bit(first))
         for g in hits:
-            free_hits[g] = free_hits.get(g, 0) + 1
+            free_hits[g] = free_hits.get(g, 0) + count
         free_blocks |= free
     return sums, free_hits, blocks, free_blocks - blocks
 
@@ -263,11 +296,13 @@ def test_carving_claims_the_tiles_it_crosses(ti_runtime):
 
 
 def _check_scan_line(tsdf):
-    """Several points, some in one voxel in a row: their band sums are merged in registers
-    in runs of any length (3: a run starts inside the row), with the same result, however
-    the runs are spread over threads (kernels.spread). With a
-    ray spacing that puts rays half a voxel apart at 10 m, only a subset carves near the
-    sensor (rays 1-3, 5, 6 not at all, ray 4 from 2.5 m on): fewer hits, the same band."""
+    """Several points, four in one voxel in a row: one bundle (its band at their mean, four
+    times the weight; it carves along its first ray, four hits a voxel), in runs of any
+    length (3: a run starts inside the bundle, which the first run takes), band sums
+    merged in registers, with the same result, however the runs are spread over threads
+    (kernels.spread). With a ray spacing that puts rays half a voxel apart at 10 m, only a
+    subset carves near the sensor (rays 5, 6 not at all, ray 4 from 2.5 m on): fewer hits,
+    the same band."""
     import taichi as ti
 
     from mcl3d.kernels import tsdf_fusion
@@ -286,11 +321,12 @@ def _check_scan_line(tsdf):
     rays = _ray_buffers(len(pts))
     args = (pts, np.zeros_like(pts), alpha, len(pts), q, t, q, t, 0.1, 100.0)
     all_hits = None
+    assert [b[2] for b in _bundles(origin, points, tsdf, 0.0)] == [4, 1, 1, 1]
     for run_length, spacing, threads in ((1, 0.0, 2), (3, 0.0, 3), (64, 0.0, 1),
                                          (64, 0.005, 1)):
         sums, free_hits, blocks, free_blocks = _scan_reference(origin, points, tsdf, behind,
                                                                sigma, spacing)
-        assert len(sums) > 15 and len(free_hits) > (0 if spacing else 10) and free_blocks
+        assert len(sums) > 12 and len(free_hits) > (0 if spacing else 10) and free_blocks
         if spacing:  # the subset near the sensor skips some voxels and counts less
             assert sum(free_hits.values()) < sum(all_hits.values())
         all_hits = free_hits
@@ -444,3 +480,72 @@ def test_band_weight_exp_matches_numpy(ti_runtime):
     tiny = np.zeros_like(big)
     run(big, tiny)
     assert np.all((tiny >= 0) & (tiny < 2e-38))
+
+
+def test_scan_quat_exp_matches_scipy(ti_runtime):
+    """The deskew's rotation exp (polynomial below half a radian of half angle, sin/cos
+    above) against scipy's rotation vectors, small to large and exactly zero."""
+    import taichi as ti
+    from scipy.spatial.transform import Rotation
+
+    from mcl3d.kernels.tsdf_fusion import scan_quat_exp
+
+    @ti.kernel
+    def run(w: ti.types.ndarray(dtype=ti.math.vec3, ndim=1),
+            out: ti.types.ndarray(dtype=ti.math.vec4, ndim=1)):
+        for i in range(w.shape[0]):
+            out[i] = scan_quat_exp(w[i])
+
+    rng = np.random.default_rng(5)
+    axes = rng.normal(size=(400, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    angles = np.concatenate([np.geomspace(1e-7, 3.0, 399), [0.0]])
+    w = (axes * angles[:, None]).astype(np.float32)
+    out = np.zeros((len(w), 4), np.float32)
+    run(w, out)
+    ref = Rotation.from_rotvec(w.astype(np.float64)).as_quat()  # (x, y, z, w), w >= 0
+    np.testing.assert_allclose(out, ref, atol=2e-7)
+    assert (out[-1] == [0, 0, 0, 1]).all()
+
+
+def test_a_wide_ray_that_closes_a_bundle_adds_both_bands(ti_runtime):
+    """A ray with a patch (footprint_steps > 0) right after a bundle closes it and fuses
+    in the same step of the walk: the same band sums as the wide ray first and the bundle
+    after it, for runs of any length and thread counts."""
+    import taichi as ti
+
+    from mcl3d.kernels import tsdf_fusion
+
+    origin = np.array([0.013, -0.021, 0.017])
+    c = np.array([2.05, 0.55, 0.35])  # a voxel centre, 2.1 m away: one column at 0.04 rad
+    near = c + np.array([[0.02, 0.01, -0.02], [-0.03, 0.02, 0.0], [0.0, -0.02, 0.03]])
+    far = np.array([3.31, 1.17, 0.53])  # 3.5 m: a patch of half-width 1
+    spacing, behind, sigma = 0.04, 0.2, 0.1
+    q = ti.math.vec4(0, 0, 0, 1)
+    t = ti.math.vec3(*origin)
+
+    tsdf = _map(dims=(6, 4, 3), capacity=128, origin=(-0.4, -1.2, -1.2))
+
+    def fused(points, run_length, threads):
+        tsdf.clear()  # one map: its kernels compile once
+        tsdf.as_sums = True
+        pts = np.array([p - origin for p in points], np.float32)
+        alpha = np.zeros(len(pts), np.float32)
+        rays = _ray_buffers(len(pts))
+        args = (pts, np.zeros_like(pts), alpha, len(pts), q, t, q, t, 0.1, 100.0)
+        tsdf.relaunch_until_placed(partial(tsdf_fusion.scan_allocate, tsdf, *args, spacing,
+                                           behind, False, *rays, run_length, threads, False))
+        tsdf.init_new_blocks(0, tsdf.requested_blocks)
+        tsdf_fusion.scan_fuse(tsdf, *rays, alpha, len(pts), t, t, spacing, behind, False,
+                              sigma, run_length, threads)
+        return _pool_sums(tsdf)[1]
+
+    expected = fused([far, *near], 64, 1)
+    patch, column = fused([far], 64, 1), fused(near, 64, 1)
+    assert len(patch) > len(column) > 3 and set(expected) == set(patch) | set(column)
+    for run_length, threads in ((64, 1), (1, 2), (2, 3)):
+        got = fused([*near, far], run_length, threads)
+        assert set(got) == set(expected)
+        for g, (wd, w) in expected.items():
+            assert got[g][1] == pytest.approx(w, abs=1e-5)
+            assert got[g][0] == pytest.approx(wd, abs=1e-5)
