@@ -18,6 +18,7 @@ import taichi as ti
 from taichi._lib import core as ti_core
 from taichi.lang import impl
 
+from mcl3d.core import kernel_positions
 from mcl3d.core.errors import BackendUnavailable, ConfigError
 from mcl3d.core.vulkan_probe import vulkan_devices
 
@@ -47,6 +48,7 @@ def current() -> RuntimeInfo | None:
 def _start(backend: str, offline_cache: bool, debug: bool) -> str:
     """ti.init on exactly `backend`; returns the arch name Taichi actually started."""
     arch = {"cuda": ti.cuda, "vulkan": ti.vulkan, "cpu": ti.cpu}[backend]
+    kernel_positions.shorten()
     ti.reset()
     quiet = io.StringIO()
     try:
