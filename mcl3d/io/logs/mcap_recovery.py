@@ -115,15 +115,25 @@ def chunk_records(body: bytes) -> list:
 def read_chunk(f: BinaryIO, offset: int, size: int) -> tuple[list, int]:
     """(records, end byte) of the chunk record at `offset` of a `size`-byte file, or
     UnsoundRecord."""
-    f.seek(offset)
-    head = f.read(_RECORD_HEAD.size)
+
+    def read(at: int, n: int) -> bytes:
+        f.seek(at)
+        return f.read(n)
+
+    return chunk_at(read, offset, size)
+
+
+def chunk_at(read: Callable[[int, int], bytes], offset: int, size: int) -> tuple[list, int]:
+    """read_chunk through `read(offset, n)` (os.pread: no shared file position, so another
+    thread may read ahead)."""
+    head = read(offset, _RECORD_HEAD.size)
     if len(head) < _RECORD_HEAD.size:
         raise UnsoundRecord("the file ends inside a record head")
     opcode, length = _RECORD_HEAD.unpack(head)
     end = offset + _RECORD_HEAD.size + length
     if opcode != Opcode.CHUNK or end > size:
         raise UnsoundRecord("not a whole chunk record")
-    return chunk_records(f.read(length)), end
+    return chunk_records(read(offset + _RECORD_HEAD.size, length)), end
 
 
 def _plausible_chunk_head(buf: bytes, i: int, offset: int, size: int) -> bool:
