@@ -45,7 +45,7 @@ for a 4 s warehouse log after an office build, load ~8); another voxel size stil
 warehouse's in-process stage rows (band + carving 47 ms) exceed its whole command (39.8 ms
 a scan): in that run it was the process's second map; the cause was not found. An OS1-64 (65,000 points a scan,
 the fusion bench) takes 57–60 ms a scan (90–95 cpu-ms); the whole command on a 30 s OS1-64 log
-19–20 s: 1.5× real time. `slam` with 10,000 particles: the
+17–18 s: 1.7× real time. `slam` with 10,000 particles: the
 likelihood linearizes 10,000 particles × 3 keyframes × 512 points (15 million GICP
 correspondences, ~6 ns each on 2 cores) every scan, and in the warehouse's look-alike aisles
 many particles see a loop keyframe each scan and linearize again for the correction."""),

@@ -41,6 +41,42 @@ def test_pass_one_keeps_the_scans_while_they_fit(vlp16_log):
     assert _bounds(vlp16_log, scan_cache_mb=0)[0].cached is None  # read again in pass 2
 
 
+def test_ground_truth_and_scans_come_from_one_read_while_the_scans_fit(vlp16_log,
+                                                                       monkeypatch):
+    """With the log's ground truth as poses, one read of the log gives the poses and pass 1
+    (the same as the poses first, then pass 1); scans that would overflow the cache take
+    the two reads."""
+    from mcl3d.io.logs.reader import LogReader
+    from mcl3d.mapping import pipeline
+    from mcl3d.maps.build import BuildConfig
+
+    reads = []
+    messages = LogReader.messages
+
+    def counted(self, kinds=("points", "gt")):
+        reads.append(tuple(kinds))
+        return messages(self, kinds)
+
+    monkeypatch.setattr(LogReader, "messages", counted)
+    two_reads, _ = _bounds(vlp16_log)
+    for cache_mb, last_reads in ((512, [("points", "gt")]), (0, [("gt",), ("points",)])):
+        request = pipeline.BuildMapRequest(source=vlp16_log, output=vlp16_log.with_suffix(
+            ".tsdf"), config=BuildConfig(scan_cache_mb=cache_mb))
+        with LogReader(vlp16_log) as reader:
+            reads.clear()
+            traj, _, scans = pipeline._poses_and_scans(request, reader)
+        assert reads[-len(last_reads):] == last_reads  # before them: the first scan alone
+        assert reads.count(("gt",)) == (cache_mb == 0)
+        np.testing.assert_array_equal(scans.lo_m, two_reads.lo_m)
+        np.testing.assert_array_equal(scans.hi_m, two_reads.hi_m)
+        assert scans.n_scans == two_reads.n_scans == 3
+        assert (scans.cached is None) == (cache_mb == 0)
+        with LogReader(vlp16_log) as reader:
+            truth, _ = pipeline._poses(request, reader)
+        np.testing.assert_array_equal(traj.stamps_ns, truth.stamps_ns)
+        np.testing.assert_array_equal(traj.poses, truth.poses)
+
+
 def test_log_fused_from_the_cache_with_range_image_normals(ti_runtime, vlp16_log, tmp_path,
                                                            monkeypatch):
     from mcl3d.mapping import pipeline

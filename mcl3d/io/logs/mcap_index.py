@@ -120,7 +120,8 @@ class ChunksAhead:
         return current.result()[0]
 
     def close(self) -> None:
-        self._pool.shutdown(wait=False, cancel_futures=True)
+        """Stop reading ahead; waits for a read in flight (the caller may close the file)."""
+        self._pool.shutdown(wait=True, cancel_futures=True)
 
 
 def lost_between(f: BinaryIO, summary: Summary, start: int, stop: int) -> dict[int, int] | None:
