@@ -259,7 +259,7 @@ def _poses_and_scans(req: BuildMapRequest, reader: LogReader
                 stamps.append(msg.stamp_ns)
                 poses.append(msg.T)
             else:
-                clouds.append(msg)
+                clouds.append(_fused_fields(msg))  # as the cache keeps them
         if stamps:
             traj, source = _truth(req, reader, np.asarray(stamps, np.int64), np.stack(poses))
             return traj, source, _scan_bounds(req, reader, traj, clouds)
