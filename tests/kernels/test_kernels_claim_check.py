@@ -10,10 +10,10 @@ N = 64
 
 
 @pytest.fixture(scope="module")
-def fields(request):
+def fields(backend):
     from mcl3d.core import runtime
 
-    runtime.init(request.config.getoption("--backend"))
+    runtime.init(backend)
 
     class F:
         pos = ti.Vector.field(3, ti.f32, shape=N)

@@ -26,12 +26,12 @@ CAPACITY = 3000  # one particle set and one evidence for every test: kernels com
 
 
 @pytest.fixture(scope="module")
-def state(request):
+def state(backend):
     from mcl3d.core import runtime
     from mcl3d.localization.evidence import PlaceEvidence
     from mcl3d.localization.particle_set import ParticleSet
 
-    runtime.init(request.config.getoption("--backend"))
+    runtime.init(backend)
     return ParticleSet(CAPACITY), PlaceEvidence(CAPACITY)
 
 

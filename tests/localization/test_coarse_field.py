@@ -21,11 +21,11 @@ MARGIN = 3  # cells checked outside the bounds
 
 
 @pytest.fixture(scope="module")
-def room(request):
+def room(backend):
     """The localization tests' room at 10 cm voxels."""
     from mcl3d.core import runtime
 
-    runtime.init(request.config.getoption("--backend"))
+    runtime.init(backend)
     return localize_world.build_map(0.1)
 
 

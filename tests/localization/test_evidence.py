@@ -18,12 +18,12 @@ def yaw_quats(yaw_rad):
 
 
 @pytest.fixture(scope="module")
-def state(request):
+def state(backend):
     from mcl3d.core import runtime
     from mcl3d.localization.evidence import PlaceEvidence
     from mcl3d.localization.particle_set import ParticleSet
 
-    runtime.init(request.config.getoption("--backend"))
+    runtime.init(backend)
     return ParticleSet(CAPACITY), PlaceEvidence(CAPACITY)
 
 

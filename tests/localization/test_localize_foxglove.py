@@ -10,10 +10,10 @@ SCANS = 6
 
 
 @pytest.fixture(scope="module")
-def room(tmp_path_factory, request):
+def room(tmp_path_factory, backend):
     from mcl3d.core import runtime
 
-    runtime.init(request.config.getoption("--backend"))  # the map is built on it
+    runtime.init(backend)  # the map is built on it
     d = tmp_path_factory.mktemp("room")
     localize_world.write_log(d / "room.mcap", SCANS)
     localize_world.save_room_map(d / "room.tsdf", 0.1)

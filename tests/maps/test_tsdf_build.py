@@ -61,12 +61,12 @@ def _fuse(room, scans, **overrides):
 
 
 @pytest.fixture(scope="module")
-def fused(request, room, scans):
+def fused(backend, room, scans):
     """The room fused from its scans with the default settings, built once for the tests
     that only read it (each new map compiles the fusion kernels again)."""
     from mcl3d.core import runtime
 
-    runtime.init(request.config.getoption("--backend"))  # the runtime `ti_runtime` keeps
+    runtime.init(backend)  # the runtime `ti_runtime` keeps
     return _fuse(room, scans)
 
 

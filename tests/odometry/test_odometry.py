@@ -26,12 +26,12 @@ def box_scan(rng, length_m, n=6000):
 
 
 @pytest.fixture(scope="module")
-def module_odometry(request):
+def module_odometry(backend):
     """One Odometry for the tests below, `reset` between them: its kernels compile once."""
     from mcl3d.core import runtime
     from mcl3d.odometry.lidar_odometry import LidarOdometry, OdometryConfig
 
-    runtime.init(request.config.getoption("--backend"))
+    runtime.init(backend)
     cfg = OdometryConfig(voxel_size_m=0.2, map_voxel_size_m=0.5, max_keyframes=2,
                          buckets_per_map=1 << 13, max_points=4096)
     return LidarOdometry(cfg)

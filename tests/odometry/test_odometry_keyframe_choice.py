@@ -13,11 +13,11 @@ from mcl3d.core.geometry import se3, so3_exp, transform_points
 
 
 @pytest.fixture(scope="module")
-def odometry(request):
+def odometry(backend):
     from mcl3d.core import runtime
     from mcl3d.odometry.lidar_odometry import LidarOdometry, OdometryConfig
 
-    runtime.init(request.config.getoption("--backend"))
+    runtime.init(backend)
     cfg = OdometryConfig(voxel_size_m=0.2, map_voxel_size_m=0.5, max_keyframes=4,
                          registration_keyframes=2, buckets_per_map=1 << 13, max_points=4096)
     return LidarOdometry(cfg)

@@ -71,11 +71,11 @@ def run(odometry, nod_deg, nod_hz, scans=12):
 
 
 @pytest.fixture(scope="module")
-def make_odometry(request):
+def make_odometry(backend):
     from mcl3d.core import runtime
     from mcl3d.odometry.lidar_odometry import LidarOdometry, OdometryConfig
 
-    runtime.init(request.config.getoption("--backend"))
+    runtime.init(backend)
 
     def make(**overrides):
         return LidarOdometry(OdometryConfig(

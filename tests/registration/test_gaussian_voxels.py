@@ -33,11 +33,11 @@ def random_cloud(rng, n, extent=3.0, offset=0.0):
 
 
 @pytest.fixture(scope="module")
-def maps(request):
+def maps(backend):
     from mcl3d.core import runtime
     from mcl3d.registration.gaussian_voxels import GaussianVoxelMaps
 
-    runtime.init(request.config.getoption("--backend"))
+    runtime.init(backend)
     return GaussianVoxelMaps(max_maps=3, buckets_per_map=1 << 11, max_points=700, max_probes=32)
 
 

@@ -83,12 +83,12 @@ def reference_step(rows, src, src_covs, T):
 
 
 @pytest.fixture(scope="module")
-def problem(request):
+def problem(backend):
     from mcl3d.core import runtime
     from mcl3d.registration.batch_gicp import BatchGicp
     from mcl3d.registration.gaussian_voxels import GaussianVoxelMaps
 
-    runtime.init(request.config.getoption("--backend"))
+    runtime.init(backend)
     rng = np.random.default_rng(7)
     target, target_covs = corner_world(rng)
     maps = GaussianVoxelMaps(max_maps=2, buckets_per_map=1 << 9, max_points=1024)
