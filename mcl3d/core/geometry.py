@@ -205,3 +205,11 @@ def random_rotations(rng: np.random.Generator, n: int) -> np.ndarray:
 def rotation_angle(R: np.ndarray) -> np.ndarray:
     """Rotation angle(s) in radians, in [0, pi]."""
     return np.linalg.norm(so3_log(R), axis=-1)
+
+
+def symmetric_from_upper(upper: np.ndarray, size: int) -> np.ndarray:
+    """The symmetric size x size matrix whose upper triangle, row by row, is `upper` (how the
+    device's moment sums come back: kernels/particle_stats)."""
+    out = np.zeros((size, size))
+    out[np.triu_indices(size)] = upper
+    return out + np.triu(out, 1).T

@@ -132,21 +132,15 @@ class MeanOfAll:
         ks.sum_vector_partials(self._pose, n, self._pose_sum)
         m = self._pose_sum.to_numpy()[0].astype(np.float64)
         t_mean = m[1:4] / m[0]
-        q_mean = np.linalg.eigh(_symmetric(m[4:], 4))[1][:, -1]  # as average_quaternions
+        qq = geometry.symmetric_from_upper(m[4:], 4)
+        q_mean = np.linalg.eigh(qq)[1][:, -1]  # as average_quaternions
         q_mean = q_mean if q_mean[3] >= 0 else -q_mean
         ks.tangent_moment_partials(p.pos, p.quat, p.w, n, ti.math.vec3(*t_mean),
                                    ti.math.vec4(*q_mean), self._tangent)
         ks.sum_vector_partials(self._tangent, n, self._tangent_sum)
         x = self._tangent_sum.to_numpy()[0].astype(np.float64) / m[0]
-        covariance = _symmetric(x[6:], 6) - np.outer(x[:6], x[:6])
+        covariance = geometry.symmetric_from_upper(x[6:], 6) - np.outer(x[:6], x[:6])
         return geometry.se3_from_tq(t_mean, q_mean), covariance
-
-
-def _symmetric(upper: np.ndarray, size: int) -> np.ndarray:
-    """The symmetric matrix whose upper triangle (row by row) is `upper`."""
-    out = np.zeros((size, size))
-    out[np.triu_indices(size)] = upper
-    return out + np.triu(out, 1).T
 
 
 class ClusterLabels:

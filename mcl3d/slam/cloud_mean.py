@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import taichi as ti
 
-from mcl3d.core.geometry import rot_to_quat, se3_exp
+from mcl3d.core.geometry import rot_to_quat, se3_exp, symmetric_from_upper
 from mcl3d.evaluation.consistency import MEAN_ITERATIONS
 from mcl3d.kernels import particle_stats as ks
 from mcl3d.kernels.resample import SCAN_BLOCK
@@ -51,7 +51,4 @@ class CloudMean:
             if np.max(np.abs(step)) < MEAN_TOLERANCE_F32 or iteration == MEAN_ITERATIONS:
                 break
             mean = mean @ se3_exp(step)
-        upper = np.zeros((6, 6))
-        upper[np.triu_indices(6)] = x[6:]
-        covariance = upper + np.triu(upper, 1).T - np.outer(step, step)
-        return mean, covariance
+        return mean, symmetric_from_upper(x[6:], 6) - np.outer(step, step)
