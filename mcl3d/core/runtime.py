@@ -18,9 +18,9 @@ import taichi as ti
 from taichi._lib import core as ti_core
 from taichi.lang import impl
 
-from mcl3d.core import kernel_positions
 from mcl3d.core.errors import BackendUnavailable, ConfigError
 from mcl3d.core.vulkan_probe import vulkan_devices
+from mcl3d.kernels import taichi_frontend
 
 BACKENDS = ("auto", "cuda", "vulkan", "cpu")
 
@@ -48,7 +48,7 @@ def current() -> RuntimeInfo | None:
 def _start(backend: str, offline_cache: bool, debug: bool) -> str:
     """ti.init on exactly `backend`; returns the arch name Taichi actually started."""
     arch = {"cuda": ti.cuda, "vulkan": ti.vulkan, "cpu": ti.cpu}[backend]
-    kernel_positions.shorten()
+    taichi_frontend.install()
     ti.reset()
     quiet = io.StringIO()
     try:
