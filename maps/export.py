@@ -5,8 +5,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import open3d as o3d
-import open3d.core as o3c
 
 from mcl3d.core.errors import InputError, MapError
 from mcl3d.core.outputs import atomic_path
@@ -21,6 +19,9 @@ def level_set_mesh(geometry: MapGeometry, data: BlockData, min_weight: float = 1
 
     Returns an open3d.t.geometry.TriangleMesh in the map frame.
     """
+    import open3d as o3d  # in the functions: 0.5 s of import a map build does not need
+    import open3d.core as o3c
+
     n = len(data.coords)
     if n == 0:
         raise MapError("the map has no allocated blocks: there is no surface to export")
@@ -55,6 +56,8 @@ def write_mesh(path: Path, geometry: MapGeometry, data: BlockData) -> int:
     path = Path(path)
     if path.suffix.lower() not in MESH_SUFFIXES:
         raise InputError(f"{path}: unknown mesh type; use one of {', '.join(MESH_SUFFIXES)}")
+    import open3d as o3d
+
     mesh = level_set_mesh(geometry, data).to_legacy()
     with atomic_path(path) as tmp:
         if not o3d.io.write_triangle_mesh(str(tmp), mesh):
@@ -68,6 +71,8 @@ def write_points(path: Path, geometry: MapGeometry, data: BlockData) -> int:
     if path.suffix.lower() not in POINT_SUFFIXES:
         raise InputError(f"{path}: unknown point-cloud type; use one of "
                          f"{', '.join(POINT_SUFFIXES)}")
+    import open3d as o3d
+
     pts = surface_points(geometry, data)
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
     with atomic_path(path) as tmp:

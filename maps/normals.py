@@ -30,7 +30,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-import open3d as o3d
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
 from scipy.spatial import cKDTree
@@ -52,6 +51,8 @@ Stage = Callable[[str], None]
 
 def estimate_normals(points: np.ndarray, k: int) -> np.ndarray:
     """Unit normals (N, 3) of the k nearest neighbours' plane, with arbitrary signs."""
+    import open3d as o3d  # here: 0.5 s of import that maps from logs do not need
+
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(np.float64)))
     pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(k))
     return np.asarray(pcd.normals)
