@@ -402,7 +402,7 @@ def refine_free_voxels(m: ti.template(), start: ti.i32, count: ti.i32):
     (rays skim floors and pass edges). For a band voxel n at k steps along one of the 26
     grid directions,
     d(v) <= k * voxel + |d(n)| (triangle inequality), so the smallest such bound replaces
-    +truncation.
+    +truncation. Along each direction no neighbour farther than the bound found is read.
     """
     radius = ti.static(int(m.truncation_m / m.voxel_size_m + 0.999))  # voxels: no size
     for k, i, j, h in ti.ndrange(count, BLOCK, BLOCK, BLOCK):
@@ -417,6 +417,8 @@ def refine_free_voxels(m: ti.template(), start: ti.i32, count: ti.i32):
                 length = ti.sqrt(ti.cast(e.dot(e), ti.f32))
                 if n != 13:
                     for step in range(1, radius + 1):
+                        if step * length * vox >= best:  # no farther neighbour can lower it
+                            break
                         dw = voxel_dw_at(m, geo, g + step * e)
                         if dw[1] > 0.0:
                             best = ti.min(best, step * length * vox + ti.abs(dw[0]))

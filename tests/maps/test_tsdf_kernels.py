@@ -266,6 +266,53 @@ def test_fusion_of_a_ray_and_a_scan_line_matches_numpy(ti_runtime):
     _check_scan_line(tsdf)
 
 
+def _band_bound(g, band, voxel_m, trunc_m):
+    """refine_free_voxels in NumPy: the least k * |e| * voxel + |d(n)| over band voxels n at
+    k = 1..ceil(trunc / voxel) steps along the 26 grid directions e, at most trunc."""
+    radius = int(trunc_m / voxel_m + 0.999)
+    bound = trunc_m
+    for e in np.array(np.meshgrid(*[[-1, 0, 1]] * 3, indexing="ij")).reshape(3, -1).T:
+        if e.any():
+            for k in range(1, radius + 1):
+                n = tuple(np.asarray(g) + k * e)
+                if n in band:
+                    bound = min(bound, k * np.linalg.norm(e) * voxel_m + abs(band[n][0]))
+    return bound
+
+
+def test_free_voxels_are_bounded_through_band_neighbours(ti_runtime):
+    """finalize's refine_free_voxels against NumPy: a floor seen at grazing angles, whose
+    rays cross voxels just above the band."""
+    import taichi as ti
+
+    from mcl3d.kernels import tsdf_fusion
+    from mcl3d.maps.free_space import HostMap
+
+    tsdf = _map(dims=(10, 4, 3), capacity=128, voxel=0.1, trunc=0.3, origin=(-0.8, -0.8, -0.8))
+    tsdf.as_sums = True
+    x, y = np.meshgrid(np.linspace(0.6, 3.5, 30), np.linspace(-0.5, 0.5, 9))
+    pts = np.stack([x.ravel(), y.ravel(), np.full(x.size, -0.47)], axis=1).astype(np.float32)
+    n, q, t = len(pts), ti.math.vec4(0, 0, 0, 1), ti.math.vec3(0.013, -0.021, 0.017)
+    alpha = np.zeros(n, np.float32)
+    rays = _ray_buffers(n)
+    tsdf.relaunch_until_placed(partial(
+        tsdf_fusion.scan_allocate, tsdf, pts, np.zeros_like(pts), alpha, n, q, t, q, t, 0.1,
+        100.0, 0.0, 0.2, False, *rays, 64, 1, True))
+    tsdf.init_new_blocks(0, tsdf.requested_blocks)
+    tsdf_fusion.scan_fuse(tsdf, *rays, alpha, n, t, t, 0.0, 0.2, True, 0.1, 64, 1)
+    data, sums = _pool_sums(tsdf)
+    band = {g: (np.clip(wd / w, -0.3, 0.3),) for g, (wd, w) in sums.items()}
+    hits, counts = set(), tsdf.free_hits.to_numpy()
+    for b, cb in enumerate(data.coords):
+        hits |= {tuple(np.asarray(cb) * 8 + i) for i in np.argwhere(counts[b])}
+    tsdf.finalize()
+    host = HostMap(tsdf)
+    bounds = {g: _band_bound(g, band, 0.1, 0.3) for g in hits - set(band)}
+    assert sum(bound < 0.3 for bound in bounds.values()) > 20
+    for g, bound in bounds.items():
+        assert float(host.voxel_dw(np.array(g))[0]) == pytest.approx(bound, abs=1e-5)
+
+
 def test_carving_claims_the_tiles_it_crosses(ti_runtime):
     """A 21 m ray over a map four tiles long: the allocation pass claims the tiles of the
     band and of every block the carving walk crosses, so carving marks the same FREE
