@@ -31,21 +31,17 @@ around its stages; \"outside the steps\" is the whole command less its per-scan 
 decoding, outputs). KISS-ICP runs on the same decoded scans in the same process,
 interleaved frame by frame.
 
-Where a target is missed, the stage rows say why. `build-map` passes 2× in both worlds
-with its kernels compiled (2.63× and 2.51× on 2026-11-27 04:43–04:49, load 1–2; 2.85× and
-2.83× at 02:18–02:23 idle, before the map geometry was passed at run time; 2.42× and 1.21×
-on 2026-11-26, before the scan band shared the point-cloud build's dispatch, the map file
-was written in chunks at deflate level 1 and ground points of scans without rings got a
-normal across their ring; which change gave how much was not isolated). With an empty
-kernel cache, as on a new machine, the same command takes 51–53 s (1.1–1.2× real time):
-compiling the fusion kernels. A map of another size or origin no longer compiles them: the
-map's origin, grid dims and capacities are read at run time and writable pools come in
-power-of-two sizes, so a second map in a fresh process compiles 0 kernels (17 s against 62 s
-for a 4 s warehouse log after an office build, load ~8); another voxel size still does. The
-warehouse's in-process stage rows (band + carving 47 ms) exceed its whole command (39.8 ms
-a scan): in that run it was the process's second map; the cause was not found. An OS1-64 (65,000 points a scan,
-the fusion bench) takes 57–60 ms a scan (90–95 cpu-ms); the whole command on a 30 s OS1-64 log
-17–18 s: 1.7× real time. `slam` with 10,000 particles: the
+Where a target is missed, the stage rows say why. `build-map` passes 2× on every log with
+its kernels compiled: 3.37× and 3.01× real time on the 60 s VLP-16 logs of the office and
+the warehouse, and 2.17× on a 30 s OS1-64 log of the office (65,000 points a scan: 13.8 s,
+46 ms a scan, of which 32 in the normals and fusion kernels). With an empty kernel cache,
+as on a new machine, the same command takes 48–54 s (0.6–1.2× real time): compiling the
+fusion kernels. A map of another size or
+origin does not compile them again: the map's origin, grid dims and capacities are read at
+run time and writable pools come in power-of-two sizes, so a second map in a fresh process
+compiles 0 kernels; another voxel size does. The warehouse's in-process stage rows (band +
+carving 52 ms) exceed its whole command (33 ms a scan): there it is the bench process's
+second map; the cause was not found. `slam` with 10,000 particles: the
 likelihood linearizes 10,000 particles × 3 keyframes × 512 points (15 million GICP
 correspondences, ~6 ns each on 2 cores) every scan, and in the warehouse's look-alike aisles
 many particles see a loop keyframe each scan and linearize again for the correction."""),
