@@ -168,7 +168,8 @@ def sym_to_mat(c: vec6) -> ti.math.mat3:
 def linearize(pool: ti.template(), rows: ti.template(), num_rows: ti.i32, chunk: ti.i32,
               num_chunks: ti.i32, poses: ti.template(), maps: ti.template(), buckets: ti.i32,
               max_probes: ti.i32, tasks: ti.template(), exclusive: ti.template(),
-              plane_cov: ti.template(), serial: ti.template(), facing_cos: ti.f32):
+              plane_cov: ti.template(), serial: ti.template(), facing_cos: ti.f32,
+              cost_cap: ti.f32):
     """Every running row's sums, one task per (row, chunk of its points). `pool.cov_rows`
     holds upper(C_A) (see rotated_cov_basis), or (n, α, β, 0) with `plane_cov` (see
     rotated_source_cov). `exclusive`: every group has one row and one chunk, so each task owns
@@ -178,7 +179,8 @@ def linearize(pool: ti.template(), rows: ti.template(), num_rows: ti.i32, chunk:
     the last bits, and a tracker or particle filter turns those into different trajectories.
     `serial`: a small problem (one scan) runs on the calling thread, where waking the pool
     costs more than it saves (and on a busy machine a descheduled worker stalls the launch).
-    `facing_cos`: see faces_map (plane covariances only)."""
+    `facing_cos`: see faces_map (plane covariances only). `cost_cap`: each point adds at most
+    this to the error (½ eᵀMe; H and b keep every point): a truncated cost."""
     ti.loop_config(serialize=serial)
     for r, c in ti.ndrange(num_rows, num_chunks):
         g = rows.group[r]
@@ -192,14 +194,15 @@ def linearize(pool: ti.template(), rows: ti.template(), num_rows: ti.i32, chunk:
             tasks.n[slot] = 0
         if poses.status[g] == RUNNING and begin < rows.count[r]:
             linearize_task(pool, rows, r, begin, ti.min(chunk, rows.count[r] - begin), poses, g,
-                           maps, buckets, max_probes, tasks, slot, plane_cov, facing_cos)
+                           maps, buckets, max_probes, tasks, slot, plane_cov, facing_cos,
+                           cost_cap)
 
 
 @ti.func
 def linearize_task(pool: ti.template(), rows: ti.template(), r: ti.i32, begin: ti.i32,
                    count: ti.i32, poses: ti.template(), g: ti.i32, maps: ti.template(),
                    buckets: ti.i32, max_probes: ti.i32, tasks: ti.template(), slot: ti.i32,
-                   plane_cov: ti.template(), facing_cos: ti.f32):
+                   plane_cov: ti.template(), facing_cos: ti.f32, cost_cap: ti.f32):
     """Sums of the `count` points of row r from its point `begin`, at its group g's candidate
     pose, into tasks[slot] (left as they are when no point found a voxel).
 
@@ -249,7 +252,7 @@ def linearize_task(pool: ti.template(), rows: ti.template(), r: ti.i32, begin: t
             S_tt += tt
             b_r += br
             b_t += bt
-            err += ee
+            err += ti.min(ee, cost_cap)
             n += ti.select(hit, 1, 0)
     if n > 0:
         H_r, b_r6 = to_right_perturbation(R, S_rr, S_tr, S_tt, b_r, b_t)
@@ -445,7 +448,8 @@ def step(num_groups: ti.i32, use_lm: ti.i32, rot_eps: ti.f32, trans_eps: ti.f32,
 def iterate(pool: ti.template(), rows: ti.template(), num_rows: ti.i32, chunk: ti.i32,
             num_chunks: ti.i32, maps: ti.template(), buckets: ti.i32, max_probes: ti.i32,
             tasks: ti.template(), poses: ti.template(), num_groups: ti.i32, use_lm: ti.i32,
-            rot_eps: ti.f32, trans_eps: ti.f32, facing_cos: ti.f32, exclusive: ti.template(),
+            rot_eps: ti.f32, trans_eps: ti.f32, facing_cos: ti.f32, cost_cap: ti.f32,
+            exclusive: ti.template(),
             plane_cov: ti.template(), one_row_per_group: ti.template(),
             serial: ti.template()) -> ti.i32:
     """One Gauss-Newton/LM iteration of every running group in one launch: `linearize`
@@ -454,7 +458,7 @@ def iterate(pool: ti.template(), rows: ti.template(), num_rows: ti.i32, chunk: t
     matters for small problems (a scan of odometry), where launching costs more than the math.
     `serial` (a small problem, see linearize) runs all three on the calling thread."""
     linearize(pool, rows, num_rows, chunk, num_chunks, poses, maps, buckets, max_probes, tasks,
-              exclusive, plane_cov, serial, facing_cos)
+              exclusive, plane_cov, serial, facing_cos, cost_cap)
     if ti.static(not exclusive):
         reduce_tasks(num_rows, num_chunks, rows, poses, tasks, one_row_per_group)
     return step(num_groups, use_lm, rot_eps, trans_eps, poses, serial)

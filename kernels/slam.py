@@ -309,7 +309,8 @@ def likelihood(n: ti.i32, num_src: ti.i32, nb: ti.template(), best_e: ti.templat
                best_n: ti.template(), outlier_cost: ti.f32, seen: ti.template(),
                seen_cost: ti.f32, points_weight: ti.f32, frame_ll: ti.template(),
                log_w: ti.template()):
-    """Eq. 2-3 and 11, per point: the GICP cost eᵀΩe of a matched point, `outlier_cost`
+    """Eq. 2-3 and 11, per point: the GICP cost eᵀΩe of a matched point (at most `outlier_cost`
+    with likelihood.truncated: best_e is then capped per point), `outlier_cost`
     for a point with no voxel, plus `seen_cost` for each of the row's `seen` points (points
     in the keyframe's seen-through space, kernels/slam_free_space.py, already scaled to the
     scan); log p = -½ points_weight · mean cost over the neighbour rows, added to the

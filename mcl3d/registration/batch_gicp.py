@@ -9,6 +9,7 @@ kernel.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -230,10 +231,11 @@ class BatchGicp:
 
     def iterate(self, use_lm: bool = False, rotation_eps_rad: float = 1e-3 * np.pi / 180,
                 translation_eps_m: float = 1e-4, chunk: int | None = None,
-                validate_surfaces: bool = False) -> int:
+                validate_surfaces: bool = False, cost_cap: float = math.inf) -> int:
         """One linearization of every running pose plus one solve; returns how many run on.
         `validate_surfaces` drops plane points whose surface faces away from the sensor of the
-        map they are matched in (the map's origin; keyframe maps in their lidar frame)."""
+        map they are matched in (the map's origin; keyframe maps in their lidar frame).
+        `cost_cap`: no point adds more than this to the error ½ Σ eᵀMe (a truncated cost)."""
         maps = self.maps
         if chunk is None:
             chunk = self.default_chunk()
@@ -243,7 +245,8 @@ class BatchGicp:
         return gicp.iterate(self.pool, self.rows, self._rows, chunk, num_chunks, maps,
                             maps.buckets, maps.max_probes, tasks, self.poses, self._groups,
                             int(use_lm), rotation_eps_rad, translation_eps_m,
-                            SURFACE_VALIDATION_COS if validate_surfaces else 2.0, exclusive,
+                            SURFACE_VALIDATION_COS if validate_surfaces else 2.0, cost_cap,
+                            exclusive,
                             self.plane_covs, self._one_row_per_group, self._serial())
 
     def _serial_groups(self, num_groups: int) -> bool:

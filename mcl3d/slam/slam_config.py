@@ -100,6 +100,9 @@ class LikelihoodConfig(Section):
                                  "(tempering; see docs/slam.md)")
     outlier_cost: float = Field(0.0, ge=0, description="cost of a scan point with no voxel "
                                 "(a matched point costs eᵀΩe; 0 as in the paper)")
+    truncated: bool = Field(False, description="a matched point costs at most outlier_cost: "
+                            "missing a voxel and matching it badly cost the same (a truncated "
+                            "Gaussian; not in the paper)")
     free_space_cost: float = Field(0.0, ge=0, description="cost of a scan point lying in "
                                    "space a neighbour keyframe saw through, or of a keyframe "
                                    "point in the scan's (docs/slam.md; 3 was studied); 0: "

@@ -14,6 +14,8 @@ representative particle; keyframe poses only come back for one particle at a tim
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import taichi as ti
 
@@ -142,8 +144,9 @@ class SlamParticles:
             float(np.cos(max_facing_rad)),
             np.asarray(up, np.float32), min(max_dz_m, F32_MAX), self.nb, self.nb_loop))
 
-    def _linearize(self, num_src: int, loop_only: bool) -> None:
-        """One GICP linearization of every (particle, neighbour) row at the current poses."""
+    def _linearize(self, num_src: int, loop_only: bool, cost_cap: float = math.inf) -> None:
+        """One GICP linearization of every (particle, neighbour) row at the current poses (no
+        point adds more than `cost_cap` to a row's ½ Σ eᵀΩe)."""
         g = self.gicp
         slam_kernels.build_rows(self.n, self.kf, self.q_cur, self.t_cur, self.nb, self.nb_loop,
                                 int(loop_only), num_src, g.rows.group, g.rows.map, g.rows.q,
@@ -151,7 +154,7 @@ class SlamParticles:
                                 g.poses.t_cand)
         groups = self.n * NEIGHBOURS
         g.start(groups, groups, num_src, one_row_per_group=True)
-        g.iterate(use_lm=False, chunk=num_src)  # whole rows: no atomics, reproducible
+        g.iterate(use_lm=False, chunk=num_src, cost_cap=cost_cap)  # whole rows: reproducible
 
     def correct(self, travel_m: float, drift: np.ndarray, odom_position: np.ndarray,
                 num_src: int, cfg: CorrectionConfig) -> int:
@@ -190,7 +193,8 @@ class SlamParticles:
         """Frame log-likelihood of every particle, added to its cumulative log weight;
         with `free_space`, scan points in a neighbour's seen-through space and the
         neighbour's points in the scan's (FreeSpace.count) cost `free_space_cost` each."""
-        self._linearize(num_src, loop_only=False)
+        self._linearize(num_src, loop_only=False,
+                        cost_cap=0.5 * cfg.outlier_cost if cfg.truncated else math.inf)
         best = self.gicp.poses.best
         seen_cost = 0.0
         if free_space is not None and free_space_cost > 0:

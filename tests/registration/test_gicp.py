@@ -52,9 +52,10 @@ def faces_away(R, x, a, Ca, facing_cos):
     return x @ (R @ n) > facing_cos * np.linalg.norm(x)
 
 
-def reference_linearize(vox, src, src_covs, T, facing_cos=None):
+def reference_linearize(vox, src, src_covs, T, facing_cos=None, cost_cap=np.inf):
     """float64 H, b, error, inliers of the GICP cost at pose T (fixed M, one voxel each),
-    with surface validation when `facing_cos` is given."""
+    with surface validation when `facing_cos` is given; no point adds more than `cost_cap`
+    to the error."""
     index, means, vcovs = vox
     R, t = T[:3, :3], T[:3, 3]
     H, b, err, n = np.zeros((6, 6)), np.zeros(6), 0.0, 0
@@ -68,7 +69,7 @@ def reference_linearize(vox, src, src_covs, T, facing_cos=None):
         J = np.hstack([R @ hat(a), -R])
         H += J.T @ M @ J
         b += J.T @ M @ e
-        err += 0.5 * e @ M @ e
+        err += min(0.5 * e @ M @ e, cost_cap)
         n += 1
     return H, b, err, n
 
@@ -157,6 +158,27 @@ def test_kernel_cost_hessian_gradient_match_numpy(problem):
         np.testing.assert_allclose(out.error[k], err, rtol=1e-4)
         np.testing.assert_allclose(out.b[k], b, rtol=1e-3, atol=1e-3 * np.abs(b).max())
         np.testing.assert_allclose(out.H[k], H, rtol=1e-3, atol=1e-4 * np.abs(H).max())
+
+
+def test_a_capped_cost_truncates_each_points_error_alone(problem):
+    """iterate(cost_cap=c): the error sums min(½ eᵀMe, c) per point; H, b and the inliers
+    keep every point."""
+    gicp = problem["gicp"]
+    rng = np.random.default_rng(5)
+    poses = [se3(so3_exp(0.05 * rng.normal(size=3)), 0.1 * rng.normal(size=3)) for _ in range(3)]
+    for cap in (np.inf, 0.5, 0.05):
+        gicp.set_problem(np.stack(poses), row_group=np.arange(3), row_map=np.zeros(3))
+        gicp.iterate(cost_cap=cap)
+        out = gicp.result()
+        for k, T in enumerate(poses):
+            H, _, err, n = reference_linearize(problem["vox"], problem["src"],
+                                               problem["src_covs"], T, cost_cap=cap)
+            _, _, uncapped, _ = reference_linearize(problem["vox"], problem["src"],
+                                                    problem["src_covs"], T)
+            assert out.num_inliers[k] == n > 100
+            np.testing.assert_allclose(out.error[k], err, rtol=1e-4)
+            assert (err < 0.9 * uncapped) == (cap < 1)  # the caps bind on these poses
+            np.testing.assert_allclose(out.H[k], H, rtol=1e-3, atol=1e-4 * np.abs(H).max())
 
 
 def test_surface_validation_drops_what_the_map_sensor_could_not_see(problem):

@@ -93,6 +93,40 @@ def test_loop_closure_pulls_the_current_pose_and_bends_the_keyframes(ti_runtime)
     assert (err_after[3:] < 0.5 * err_before[3:]).all()  # late keyframes follow the loop
 
 
+def test_a_truncated_likelihood_costs_a_matched_point_at_most_the_outlier_cost(ti_runtime):
+    """likelihood.truncated: min(eᵀΩe, outlier_cost) per matched point, so no frame costs more
+    than outlier_cost a point; without it a pose 0.4 m off costs more, and with a cap no
+    point reaches the two agree."""
+    from mcl3d.registration.batch_gicp import BatchGicp
+    from mcl3d.registration.gaussian_voxels import GaussianVoxelMaps
+    from mcl3d.registration.preprocess import estimate_covariances, voxel_downsample
+    from mcl3d.slam.slam_config import LikelihoodConfig
+    from mcl3d.slam.slam_particles import SlamParticles
+
+    world = voxel_downsample(room_cloud(np.random.default_rng(0)), 0.2)
+    maps = GaussianVoxelMaps(max_maps=2, buckets_per_map=4096, max_points=4096)
+    maps.clear(0, 0.5)
+    maps.insert(0, world, estimate_covariances(world, 10))
+    src = world[np.linspace(0, len(world) - 1, 512).astype(int)]
+    gicp = BatchGicp(maps, max_groups=3, max_rows=3, max_source_points=512)
+    gicp.set_source(src, estimate_covariances(src, 10))
+    p = SlamParticles(1, 2, gicp, seed=0)
+    p.q_cur.from_numpy(np.array([[0, 0, 0, 1]], np.float32))
+    p.t_cur.from_numpy(np.zeros((1, 3), np.float32))
+    p.add_keyframe(0.0, np.zeros(5), np.zeros(3))
+    p.t_cur.from_numpy(np.array([[0.4, -0.3, 0.0]], np.float32))  # the scan 0.5 m off
+    p.select_neighbours(0.0, 10.0)
+
+    def frame_ll(**settings) -> float:
+        p.weigh(len(src), LikelihoodConfig(points_weight=2.0, **settings))
+        return float(p.frame_ll.to_numpy()[0])
+
+    plain, truncated = frame_ll(outlier_cost=9.0), frame_ll(outlier_cost=9.0, truncated=True)
+    assert plain < -0.5 * 2.0 * 9.0 < truncated  # mean cost above / below 9 a point
+    np.testing.assert_allclose(frame_ll(outlier_cost=1e9, truncated=True),
+                               frame_ll(outlier_cost=1e9), rtol=1e-6)
+
+
 @pytest.fixture(scope="module")
 def forest_log(tmp_path_factory):
     from mcl3d.sim.pipeline import SimulateRequest, run
