@@ -449,9 +449,8 @@ def iterate(pool: ti.template(), rows: ti.template(), num_rows: ti.i32, chunk: t
             num_chunks: ti.i32, maps: ti.template(), buckets: ti.i32, max_probes: ti.i32,
             tasks: ti.template(), poses: ti.template(), num_groups: ti.i32, use_lm: ti.i32,
             rot_eps: ti.f32, trans_eps: ti.f32, facing_cos: ti.f32, cost_cap: ti.f32,
-            exclusive: ti.template(),
-            plane_cov: ti.template(), one_row_per_group: ti.template(),
-            serial: ti.template()) -> ti.i32:
+            exclusive: ti.template(), plane_cov: ti.template(),
+            one_row_per_group: ti.template(), serial: ti.template()) -> ti.i32:
     """One Gauss-Newton/LM iteration of every running group in one launch: `linearize`
     (into the `tasks` sums, which are poses.acc when `exclusive`), `reduce_tasks` (unless
     `exclusive`), then `step`; returns how many groups run on. One launch instead of three

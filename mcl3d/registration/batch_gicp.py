@@ -246,8 +246,7 @@ class BatchGicp:
                             maps.buckets, maps.max_probes, tasks, self.poses, self._groups,
                             int(use_lm), rotation_eps_rad, translation_eps_m,
                             SURFACE_VALIDATION_COS if validate_surfaces else 2.0, cost_cap,
-                            exclusive,
-                            self.plane_covs, self._one_row_per_group, self._serial())
+                            exclusive, self.plane_covs, self._one_row_per_group, self._serial())
 
     def _serial_groups(self, num_groups: int) -> bool:
         """Few poses on cpu: their per-pose loops on the calling thread. Never on a GPU, where
