@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from support.voxel_hash_numpy import numpy_voxel_hash
 
 from mcl3d.core.geometry import hat, se3, se3_exp, so3_exp, transform_points
 
@@ -312,20 +313,6 @@ def test_rotated_covariance_and_symmetric_inverse_match_numpy(ti_runtime):
     np.testing.assert_allclose(out_inv[:-1], np.linalg.inv(C[:-1])[:, iu, ju], rtol=1e-4,
                                atol=1e-5)
     assert np.all(out_inv[-1] == 0.0)
-
-
-def numpy_voxel_hash(keys, buckets):
-    """kernels/voxel_hash.voxel_hash in NumPy (wrapping u32), masked to a home bucket."""
-    k = keys.astype(np.int64).astype(np.uint32)
-    with np.errstate(over="ignore"):
-        h = k[:, 0] * np.uint32(73856093) + k[:, 1] * np.uint32(19349669) \
-            + k[:, 2] * np.uint32(83492791)
-        h ^= h >> np.uint32(16)
-        h *= np.uint32(0x85EBCA6B)
-        h ^= h >> np.uint32(13)
-        h *= np.uint32(0xC2B2AE35)
-        h ^= h >> np.uint32(16)
-    return (h & np.uint32(buckets - 1)).astype(np.int64)
 
 
 def numpy_unpack_keys(keys):

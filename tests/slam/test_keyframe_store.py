@@ -5,6 +5,7 @@ front-end drifts (the 30-minute office loop's failure, in seconds)."""
 import dataclasses
 
 import numpy as np
+from support.voxel_hash_numpy import numpy_voxel_hash
 
 from mcl3d.core import geometry
 from mcl3d.slam.keyframe_store import KeyframeBook, slot_to_reuse
@@ -120,3 +121,31 @@ def test_slam_keeps_closing_loops_after_the_keyframe_store_wraps(ti_runtime):
     travel = slam.frames.travel_m  # a loop keyframe is named by number, slots reused or not
     for i, keyframes, _ in slam.frames.loops():
         assert all(travel[i] - travel[slam.keyframe_frames[k]] > 4.0 for k in keyframes)
+
+
+def test_a_keyframe_map_takes_a_long_run_of_colliding_voxels(ti_runtime):
+    """~64 voxels with one home slot (every cell of a 64³ cube that hashes to slot 0 of the
+    keyframe table): a probe run past 32 slots, which ended a SLAM run once (0.25 m keyframe
+    voxels, the 45th keyframe); a SLAM keyframe map holds them, a 32-probe table does not."""
+    import pytest
+
+    from mcl3d.core.errors import MapError
+    from mcl3d.registration.gaussian_voxels import GaussianVoxelMaps
+    from mcl3d.slam.monte_carlo_slam import MonteCarloSlam
+    from mcl3d.slam.slam_config import SlamConfig
+
+    slam = MonteCarloSlam(SlamConfig.model_validate({"particles": 4, "seed": 1,
+                                                     "keyframes": {"capacity": 2}}))
+    maps, voxel_m = slam.maps, 0.25
+    cells = np.stack(np.meshgrid(*[np.arange(64)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    crowd = cells[numpy_voxel_hash(cells, maps.buckets) == 0]
+    assert len(crowd) > 40
+    points = (crowd + 0.5) * voxel_m
+    covs = np.repeat(np.eye(3)[None] * 0.01, len(points), axis=0)
+    maps.clear(0, voxel_m)
+    assert maps.insert(0, points, covs) == len(crowd)
+    short = GaussianVoxelMaps(max_maps=1, buckets_per_map=maps.buckets,
+                              max_points=maps.max_points, max_probes=32)
+    short.clear(0, voxel_m)
+    with pytest.raises(MapError, match="no free slot within 32 probes"):
+        short.insert(0, points, covs)
