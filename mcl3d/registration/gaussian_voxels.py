@@ -19,6 +19,8 @@ from mcl3d.kernels import upload, voxel_hash
 GPU_LAUNCH_POINTS = 16384  # points per ordered launch off the cpu: one GPU thread takes them
 # in order, and Mesa's lavapipe stops any loop of one thread after 65,535 iterations
 SERIAL_LOOKUPS = 1 << 16  # fewer voxel lookups: on the calling thread on cpu (~1 ms)
+MAX_PROBES = 128  # slots a voxel may sit past its home: at half load a run past 32 came once
+# in ~45 SLAM keyframe maps of 2,048 points and ended the run; lookups stop at an empty slot
 
 
 def ensure_runtime():
@@ -57,7 +59,7 @@ class GaussianVoxelMaps:
     _data_oriented = True  # passed to kernels as one ti.template() (see gicp_state)
 
     def __init__(self, max_maps: int = 8, buckets_per_map: int = 1 << 16,
-                 max_points: int = 131072, max_probes: int = 32):
+                 max_points: int = 131072, max_probes: int = MAX_PROBES):
         if max_maps < 1 or max_points < 1 or max_probes < 1:
             raise ConfigError("max_maps, max_points and max_probes must be >= 1")
         if buckets_per_map < 16 or buckets_per_map & (buckets_per_map - 1):

@@ -71,8 +71,6 @@ HYPOTHESIS_MIN_SHARE = 0.01  # a grid cell holding this share of the weight is a
 BINCOUNT_CELLS_PER_POSITION = 4  # count_hypotheses bins directly when the cloud's box has
 # at most this many cells per particle (else it sorts the cells)
 KEYFRAME_BUCKETS_PER_POINT = 2  # hash slots per keyframe point (rounded up to a power of 2)
-KEYFRAME_MAX_PROBES = 128  # at half load a probe run past 32 slots came once in ~45 keyframe
-# maps of 2,048 points (0.25 m voxels) and ended the run; lookups stop at the first empty slot
 
 
 class _Stopwatch:
@@ -194,7 +192,7 @@ class MonteCarloSlam:
         kf = cfg.keyframes
         buckets = 1 << int(np.ceil(np.log2(KEYFRAME_BUCKETS_PER_POINT * kf.max_points)))
         self.maps = GaussianVoxelMaps(max_maps=kf.capacity, buckets_per_map=buckets,
-                                      max_points=kf.max_points, max_probes=KEYFRAME_MAX_PROBES)
+                                      max_points=kf.max_points)
         groups = cfg.particles * NEIGHBOURS
         self.gicp = BatchGicp(self.maps, max_groups=groups, max_rows=groups,
                               max_source_points=cfg.correction.points)

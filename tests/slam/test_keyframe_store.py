@@ -126,7 +126,8 @@ def test_slam_keeps_closing_loops_after_the_keyframe_store_wraps(ti_runtime):
 def test_a_keyframe_map_takes_a_long_run_of_colliding_voxels(ti_runtime):
     """~64 voxels with one home slot (every cell of a 64³ cube that hashes to slot 0 of the
     keyframe table): a probe run past 32 slots, which ended a SLAM run once (0.25 m keyframe
-    voxels, the 45th keyframe); a SLAM keyframe map holds them, a 32-probe table does not."""
+    voxels, the 45th keyframe); a SLAM keyframe map (gaussian_voxels.MAX_PROBES) holds them,
+    a 32-probe table does not."""
     import pytest
 
     from mcl3d.core.errors import MapError

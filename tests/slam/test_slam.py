@@ -95,7 +95,7 @@ def test_loop_closure_pulls_the_current_pose_and_bends_the_keyframes(ti_runtime)
 
 def test_a_truncated_likelihood_costs_a_matched_point_at_most_the_outlier_cost(ti_runtime):
     """likelihood.truncated: min(eᵀΩe, outlier_cost) per matched point, so no frame costs more
-    than outlier_cost a point; without it a pose 0.4 m off costs more, and with a cap no
+    than outlier_cost a point; without it a pose 0.5 m off costs more, and with a cap no
     point reaches the two agree."""
     from mcl3d.registration.batch_gicp import BatchGicp
     from mcl3d.registration.gaussian_voxels import GaussianVoxelMaps
