@@ -304,18 +304,46 @@ def mark_fixed(n: ti.i32, travel_now_m: ti.f32, drift_now: vec5, corrected: ti.t
             fixed_drift[i] = drift_now
 
 
+@ti.func
+def row_cost(g: ti.i32, num_src: ti.i32, best_e: ti.template(), best_n: ti.template(),
+             outlier_cost: ti.f32, seen: ti.template(), seen_cost: ti.f32) -> ti.f32:
+    """One neighbour row's cost: eᵀΩe summed over the matched points, `outlier_cost` per
+    point without a voxel, `seen_cost` per point in seen-through space."""
+    matched = ti.max(best_n[g], 0)
+    cost = outlier_cost * ti.cast(num_src - matched, ti.f32) + seen_cost * ti.cast(seen[g],
+                                                                               ti.f32)
+    if matched > 0:
+        cost += 2.0 * best_e[g]
+    return cost
+
+
 @ti.kernel
-def likelihood(n: ti.i32, num_src: ti.i32, nb: ti.template(), best_e: ti.template(),
-               best_n: ti.template(), outlier_cost: ti.f32, seen: ti.template(),
-               seen_cost: ti.f32, points_weight: ti.f32, frame_ll: ti.template(),
+def row_costs(n: ti.i32, num_src: ti.i32, nb: ti.template(), best_e: ti.template(),
+              best_n: ti.template(), outlier_cost: ti.f32, seen: ti.template(),
+              seen_cost: ti.f32, out: ti.types.ndarray(ndim=1)):
+    """Every (particle, neighbour) row's cost (`row_cost`); a row without a keyframe -1."""
+    for i, j in ti.ndrange(n, NEIGHBOURS):
+        g = i * NEIGHBOURS + j
+        out[g] = -1.0
+        if nb[i, j] >= 0:
+            out[g] = row_cost(g, num_src, best_e, best_n, outlier_cost, seen, seen_cost)
+
+
+@ti.kernel
+def likelihood(n: ti.i32, num_src: ti.i32, nb: ti.template(), nb_loop: ti.template(),
+               best_e: ti.template(), best_n: ti.template(), outlier_cost: ti.f32,
+               seen: ti.template(), seen_cost: ti.f32, points_weight: ti.f32,
+               local_weight: ti.f32, local_reference: ti.f32, frame_ll: ti.template(),
                log_w: ti.template()):
     """Eq. 2-3 and 11, per point: the GICP cost eᵀΩe of a matched point (at most `outlier_cost`
     with likelihood.truncated: best_e is then capped per point), `outlier_cost`
     for a point with no voxel, plus `seen_cost` for each of the row's `seen` points (points
     in the keyframe's seen-through space, kernels/slam_free_space.py, already scaled to the
     scan); log p = -½ points_weight · mean cost over the neighbour rows, added to the
-    cumulative log weight. A particle without neighbours gets UNSCORED and no weight (the
-    host gives it the typical particle's likelihood)."""
+    cumulative log weight. A row that is not a loop costs `local_weight` × its own cost +
+    (1 - `local_weight`) × `local_reference` (1: its own, as in the paper). A particle
+    without neighbours gets UNSCORED and no weight (the host gives it the typical particle's
+    likelihood)."""
     for i in range(n):
         cost = 0.0
         rows = 0
@@ -323,11 +351,11 @@ def likelihood(n: ti.i32, num_src: ti.i32, nb: ti.template(), best_e: ti.templat
             g = i * NEIGHBOURS + j
             if nb[i, j] >= 0:
                 rows += 1
-                matched = ti.max(best_n[g], 0)
-                if matched > 0:
-                    cost += 2.0 * best_e[g]
-                cost += outlier_cost * ti.cast(num_src - matched, ti.f32)
-                cost += seen_cost * ti.cast(seen[g], ti.f32)
+                own = row_cost(g, num_src, best_e, best_n, outlier_cost, seen, seen_cost)
+                if nb_loop[i, j] == 1:
+                    cost += own
+                else:
+                    cost += local_weight * own + (1.0 - local_weight) * local_reference
         if rows > 0:
             ll = -0.5 * points_weight * cost / ti.cast(rows * num_src, ti.f32)
             frame_ll[i] = ll

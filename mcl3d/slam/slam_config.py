@@ -103,6 +103,11 @@ class LikelihoodConfig(Section):
     truncated: bool = Field(False, description="a matched point costs at most outlier_cost: "
                             "missing a voxel and matching it badly cost the same (a truncated "
                             "Gaussian; not in the paper)")
+    local_weight: float = Field(1.0, ge=0, le=1, description="a neighbour that is not a loop "
+                                "costs this × its own cost + the rest × the cloud's median "
+                                "such row (1: its own, as in the paper; 0: only loops "
+                                "tell particles apart, as the odometry already matched "
+                                "the scan to the recent map; docs/slam.md)")
     free_space_cost: float = Field(0.0, ge=0, description="cost of a scan point lying in "
                                    "space a neighbour keyframe saw through, or of a keyframe "
                                    "point in the scan's (docs/slam.md; 3 was studied); 0: "

@@ -323,33 +323,74 @@ def test_propagate_with_even_drift_on_a_line_is_eq_8(ti_runtime):
     np.testing.assert_allclose(got[:, 1, 3], 0.5 * x[:K] / 10.0, atol=1e-5)
 
 
-def test_likelihood_matches_numpy(ti_runtime):
+def row_costs_numpy(nb, err, cnt, seen, M, outlier_cost, seen_cost):
+    """Each row's cost (-1 without a keyframe): eᵀΩe of the matched points (none kept
+    without a match), `outlier_cost` per unmatched point, `seen_cost` per seen-through one."""
+    matched = np.where(cnt > 0, 2.0 * err, 0.0)
+    cost = matched + outlier_cost * (M - cnt) + seen_cost * seen
+    return np.where(nb.ravel() >= 0, cost, -1.0)
+
+
+def likelihood_numpy(nb, nb_loop, costs, M, points_weight, local_weight, local_reference):
+    """Eq. 2-3 per particle: the mean row cost, a non-loop row costing local_weight × its
+    own + the rest × the reference; None for a particle without neighbours."""
+    out = []
+    for i in range(len(nb)):
+        total, rows = 0.0, 0
+        for j in range(3):
+            c = costs[3 * i + j]
+            if nb[i, j] >= 0:
+                rows += 1
+                total += c if nb_loop[i, j] else local_weight * c + (1 - local_weight) * \
+                    local_reference
+        out.append(-0.5 * points_weight * total / (rows * M) if rows else None)
+    return out
+
+
+@pytest.mark.parametrize("local_weight", [1.0, 0.25, 0.0])
+def test_likelihood_matches_numpy(ti_runtime, local_weight):
     import taichi as ti
 
     from mcl3d.kernels import slam
 
-    n, M = 3, 100
+    n, M = 4, 100
+    nb_rows = np.array([[0, 1, 2], [0, 1, -1], [-1, -1, -1], [3, 4, 5]], np.int32)
+    loop_rows = np.array([[0, 1, 0], [0, 0, 0], [0, 0, 0], [1, 1, 0]], np.int32)
     nb = ti.field(ti.i32, (n, 3))
-    nb.from_numpy(np.array([[0, 1, 2], [0, 1, -1], [-1, -1, -1]], np.int32))
-    err = np.array([12.0, 30.0, 3.0, 8.0, 0.0, 0.0, 0.0, 0.0, 0.0], np.float32)
-    cnt = np.array([80, 60, 100, 90, 0, 0, 0, 0, 0], np.int32)
+    nb.from_numpy(nb_rows)
+    nb_loop = ti.field(ti.i32, (n, 3))
+    nb_loop.from_numpy(loop_rows)
+    err = np.array([12.0, 30.0, 3.0, 8.0, 0.0, 0.0, 0.0, 0.0, 0.0, 5.0, 7.0, 1.0], np.float32)
+    cnt = np.array([80, 60, 100, 90, 0, 0, 0, 0, 0, 70, 0, 95], np.int32)
     best_e = ti.field(ti.f32, 3 * n)
     best_n = ti.field(ti.i32, 3 * n)
     best_e.from_numpy(err)
     best_n.from_numpy(cnt)
+    seen_rows = np.array([4, 0, 1, 6, 0, 0, 0, 0, 7, 2, 3, 0], np.int32)
+    seen = ti.field(ti.i32, 3 * n)  # points in seen-through space, each costing 2.5
+    seen.from_numpy(seen_rows)
+    costs = np.empty(3 * n, np.float32)
+    slam.row_costs(n, M, nb, best_e, best_n, 9.0, seen, 2.5, costs)
+    want_costs = row_costs_numpy(nb_rows, err, cnt, seen_rows, M, 9.0, 2.5)
+    np.testing.assert_allclose(costs, want_costs, rtol=1e-6)
     frame_ll = ti.field(ti.f32, n)
     log_w = ti.field(ti.f32, n)
-    log_w.from_numpy(np.array([-1.0, -2.0, 0.0], np.float32))
-    seen = ti.field(ti.i32, 3 * n)  # points in seen-through space, each costing 2.5
-    seen.from_numpy(np.array([4, 0, 1, 6, 0, 0, 0, 0, 7], np.int32))
-    slam.likelihood(n, M, nb, best_e, best_n, 9.0, seen, 2.5, 30.0, frame_ll, log_w)
-    cost0 = 2 * (12 + 30 + 3) + 9 * (20 + 40 + 0) + 2.5 * (4 + 0 + 1)
-    cost1 = 2 * 8 + 9 * (10 + 100) + 2.5 * 6
-    want = np.array([-0.5 * 30 * cost0 / (3 * M), -0.5 * 30 * cost1 / (2 * M)])
-    np.testing.assert_allclose(frame_ll.to_numpy()[:2], want, rtol=1e-6)
-    assert frame_ll.to_numpy()[2] == np.float32(slam.UNSCORED)  # no neighbour: no evidence
-    np.testing.assert_allclose(log_w.to_numpy(), [want[0] - 1.0, want[1] - 2.0, 0.0],
-                               rtol=1e-6)
+    log_w0 = np.array([-1.0, -2.0, 0.0, -0.5], np.float32)
+    log_w.from_numpy(log_w0)
+    reference = 321.0  # a cost no row has
+    slam.likelihood(n, M, nb, nb_loop, best_e, best_n, 9.0, seen, 2.5, 30.0, local_weight,
+                    reference, frame_ll, log_w)
+    want = likelihood_numpy(nb_rows, loop_rows, want_costs, M, 30.0, local_weight, reference)
+    got = frame_ll.to_numpy()
+    assert got[2] == np.float32(slam.UNSCORED) and log_w.to_numpy()[2] == 0.0  # no evidence
+    for i in (0, 1, 3):
+        np.testing.assert_allclose(got[i], want[i], rtol=1e-6)
+        np.testing.assert_allclose(log_w.to_numpy()[i], want[i] + log_w0[i], rtol=1e-6)
+    if local_weight == 1.0:  # the paper's mean over every neighbour, written out once
+        cost0 = 2 * (12 + 30 + 3) + 9 * (20 + 40 + 0) + 2.5 * (4 + 0 + 1)
+        np.testing.assert_allclose(got[0], -0.5 * 30 * cost0 / (3 * M), rtol=1e-6)
+    if local_weight == 0.0:  # only loop rows tell particles apart
+        np.testing.assert_allclose(got[1], -0.5 * 30 * reference / M, rtol=1e-6)
 
 
 def test_prune_plan_keeps_the_living_and_splits_weights():

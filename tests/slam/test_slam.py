@@ -127,6 +127,46 @@ def test_a_truncated_likelihood_costs_a_matched_point_at_most_the_outlier_cost(t
                                frame_ll(outlier_cost=1e9), rtol=1e-6)
 
 
+def test_a_zero_local_weight_leaves_only_loops_to_tell_particles_apart(ti_runtime):
+    """likelihood.local_weight 0: particles whose neighbours are not loops score the same
+    however well they match them (the odometry already matched the scan to that map),
+    while a loop row still costs each particle its own match; at 1 (the paper) the
+    non-loop keyframe's match tells them apart."""
+    from mcl3d.registration.batch_gicp import BatchGicp
+    from mcl3d.registration.gaussian_voxels import GaussianVoxelMaps
+    from mcl3d.registration.preprocess import estimate_covariances, voxel_downsample
+    from mcl3d.slam.slam_config import LikelihoodConfig
+    from mcl3d.slam.slam_particles import SlamParticles
+
+    world = voxel_downsample(room_cloud(np.random.default_rng(0)), 0.2)
+    maps = GaussianVoxelMaps(max_maps=4, buckets_per_map=4096, max_points=4096)
+    for k in range(4):  # keyframe 0 saw the room; 1-3 (far away, the newest) saw nothing
+        maps.clear(k, 0.5)
+    maps.insert(0, world, estimate_covariances(world, 10))
+    src = world[np.linspace(0, len(world) - 1, 512).astype(int)]
+    gicp = BatchGicp(maps, max_groups=9, max_rows=9, max_source_points=512)
+    gicp.set_source(src, estimate_covariances(src, 10))
+    p = SlamParticles(3, 4, gicp, seed=0)
+    p.q_cur.from_numpy(np.tile(np.array([0, 0, 0, 1], np.float32), (3, 1)))
+    for k in range(4):
+        p.t_cur.from_numpy(np.full((3, 3), 40.0 * k, np.float32))
+        p.add_keyframe(0.0, np.zeros(5), np.zeros(3))
+    p.t_cur.from_numpy(np.array([[0.0, 0.0, 0.0], [0.2, 0.0, 0.0], [0.0, 0.3, 0.0]],
+                                np.float32))  # the scan 0, 0.2 and 0.3 m off the keyframe
+
+    def frame_ll(local_weight: float, loop_travel_m: float) -> np.ndarray:
+        p.select_neighbours(20.0, loop_travel_m)  # keyframe 0 is 20 m of travel back
+        p.log_w.fill(0.0)
+        p.weigh(len(src), LikelihoodConfig(points_weight=2.0, outlier_cost=9.0,
+                                           local_weight=local_weight))
+        return p.frame_ll.to_numpy()
+
+    recent_paper, recent_zero = frame_ll(1.0, 50.0), frame_ll(0.0, 50.0)
+    assert recent_paper[0] > recent_paper[1] > recent_paper[2]  # the match decides
+    np.testing.assert_allclose(recent_zero, recent_zero[1])  # the cloud's median row
+    np.testing.assert_allclose(frame_ll(0.0, 10.0), frame_ll(1.0, 10.0), rtol=1e-6)  # a loop
+
+
 @pytest.fixture(scope="module")
 def forest_log(tmp_path_factory):
     from mcl3d.sim.pipeline import SimulateRequest, run
