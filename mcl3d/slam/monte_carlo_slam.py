@@ -13,8 +13,10 @@ Per scan:
    keyframes (eq. 5-7), spread over their keyframes since the oldest neighbour in
    proportion to the odometry's drift variance along the path (eq. 8-10 weigh by distance);
 4. weighting: the GICP log-likelihood against the 3 neighbours, accumulated (eq. 2-3, 11);
-   particles without a loop then take one Gauss-Newton step toward their neighbours with
-   the prediction as prior, so the noise does not pile up where the scan pins the pose;
+   a neighbour that is not a loop costs the cloud's median such row (`likelihood.local_weight`
+   0): the odometry already matched the scan to the recent map, so only loops tell particles
+   apart; optionally (`correction.refine_without_loop`) particles without a loop then take
+   one Gauss-Newton step toward their neighbours with the prediction as prior;
 5. keyframes: the scan becomes a keyframe for every particle when its voxel overlap with the
    last keyframe (under the odometry motion) falls below `keyframes.overlap`; once
    `keyframes.capacity` keyframes are kept, it replaces the most redundant one
@@ -342,7 +344,11 @@ class MonteCarloSlam:
                 p.select_neighbours(*gate)
         watch.lap("correct")
         if scored:
-            p.weigh(len(src_pts), cfg.likelihood, self.free_space, free_space_cost)
+            # after a ride the particles' heights are not the odometry's: every neighbour
+            # weighs until the floor guard lets go
+            likelihood = cfg.likelihood.model_copy(update={"local_weight": 1.0}) \
+                if self.floor_guard.active else cfg.likelihood
+            p.weigh(len(src_pts), likelihood, self.free_space, free_space_cost)
         watch.lap("weigh")
         if scored and corr.refine_without_loop and cov is not None:
             p.refine(cov, corr)

@@ -27,7 +27,9 @@ PAPER: dict[str, Any] = {
     "correction.min_inliers": 6,
     "correction.refine_without_loop": False,
     "correction.spread_after_step": False,
-    # eq. 3: only scan points in a keyframe voxel are scored
+    # eq. 2-3: every neighbour keyframe weighs alike (the defaults: only loops tell particles
+    # apart); only scan points in a keyframe voxel are scored
+    "likelihood.local_weight": 1.0,
     "likelihood.free_space_cost": 0.0,
     # §III-F
     "pruning.posterior": 1e-8,

@@ -38,14 +38,16 @@ class KeyframeConfig(Section):
 class PredictionNoiseConfig(Section):
     """The noise δ each particle draws around the odometry's motion (eq. 1)."""
 
-    odometry_scale: float = Field(0.25, ge=0, description="× the odometry's σ (its inverse "
-                                  "Hessian overstates the per-scan error)")
-    trans_per_m: float = Field(0.01, ge=0, description="translation σ (m) per metre moved")
-    rot_deg_per_m: float = Field(0.05, ge=0, description="rotation σ (deg) per metre moved")
-    rot_deg_per_deg: float = Field(0.01, ge=0, description="rotation σ (deg) per degree "
+    odometry_scale: float = Field(0.0625, ge=0, description="× the odometry's σ (its "
+                                  "inverse Hessian overstates the per-scan error, and "
+                                  "between loops a particle's noise is its error: "
+                                  "docs/slam.md)")
+    trans_per_m: float = Field(0.0025, ge=0, description="translation σ (m) per metre moved")
+    rot_deg_per_m: float = Field(0.0125, ge=0, description="rotation σ (deg) per metre moved")
+    rot_deg_per_deg: float = Field(0.0025, ge=0, description="rotation σ (deg) per degree "
                                    "turned")
-    trans_min_m: float = Field(0.001, ge=0, description="translation σ floor per scan (m)")
-    rot_min_deg: float = Field(0.01, ge=0, description="rotation σ floor per scan (deg)")
+    trans_min_m: float = Field(0.00025, ge=0, description="translation σ floor per scan (m)")
+    rot_min_deg: float = Field(0.0025, ge=0, description="rotation σ floor per scan (deg)")
     max_odometry_sigma_m: float = Field(0.0025, gt=0, description="cap on the odometry's "
                                         "translation σ per scan (degenerate or lost "
                                         "registration) (m)")
@@ -83,9 +85,10 @@ class CorrectionConfig(Section):
                                   "particle is on the loop: later steps spread from here "
                                   "instead of from the oldest neighbour (m)")
     settled_step_deg: float = Field(0.2, ge=0, description="the same for rotation (deg)")
-    refine_without_loop: bool = Field(True, description="particles without a loop take one "
-                                      "step toward their own newest keyframes per scan, the "
-                                      "prediction noise as prior (not in the paper; see "
+    refine_without_loop: bool = Field(False, description="particles without a loop take "
+                                      "one step toward their own newest keyframes per scan, "
+                                      "the prediction noise as prior (not in the paper; "
+                                      "off: it chains scan-to-keyframe matches, "
                                       "docs/slam.md)")
     spread_after_step: bool = Field(True, description="a particle a step moved draws from "
                                     "the step's Gaussian posterior, so the cloud does not "
@@ -103,7 +106,7 @@ class LikelihoodConfig(Section):
     truncated: bool = Field(False, description="a matched point costs at most outlier_cost: "
                             "missing a voxel and matching it badly cost the same (a truncated "
                             "Gaussian; not in the paper)")
-    local_weight: float = Field(1.0, ge=0, le=1, description="a neighbour that is not a loop "
+    local_weight: float = Field(0.0, ge=0, le=1, description="a neighbour that is not a loop "
                                 "costs this × its own cost + the rest × the cloud's median "
                                 "such row (1: its own, as in the paper; 0: only loops "
                                 "tell particles apart, as the odometry already matched "

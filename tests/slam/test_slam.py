@@ -464,7 +464,9 @@ def box_surface(rng, half_xy: float, z0: float, z1: float, n: int) -> np.ndarray
 
 def test_the_guard_starts_when_a_ride_ends_and_only_then(ti_runtime):
     """A room, a shut cab (the elevator detector holds), the room again: the guard is off
-    before and during the ride and prunes by strata from the first scan after it."""
+    before and during the ride and prunes by strata from the first scan after it; while it
+    holds, every neighbour weighs (the particles' heights are not the odometry's), before
+    the ride only loops do."""
     from mcl3d.slam.monte_carlo_slam import MonteCarloSlam
     from mcl3d.slam.slam_config import SlamConfig
 
@@ -475,6 +477,10 @@ def test_the_guard_starts_when_a_ride_ends_and_only_then(ti_runtime):
     calls = []
     real = slam.floor_guard.prune_plan
     slam.floor_guard.prune_plan = lambda *a: calls.append(len(slam.frames)) or real(*a)
+    weighs = []
+    real_weigh = slam.particles.weigh
+    slam.particles.weigh = lambda n, cfg, *a: weighs.append(cfg.local_weight) or real_weigh(
+        n, cfg, *a)
     states = []
     for k, cloud in enumerate([room] * 3 + [cab] * 3 + [room] * 3):
         frame = slam.step(cloud, None, k * 100_000_000)
@@ -482,6 +488,7 @@ def test_the_guard_starts_when_a_ride_ends_and_only_then(ti_runtime):
     assert [e for e, _ in states] == [False] * 3 + [True] * 3 + [False] * 3
     assert [a for _, a in states] == [False] * 6 + [True] * 3
     assert calls == [6, 7, 8]  # the scored scans after the ride
+    assert weighs == [0.0, 0.0, 1.0, 1.0, 1.0]  # scans 1, 2 and 6, 7, 8
     off = MonteCarloSlam(SlamConfig.model_validate({"particles": 20, "seed": 1,
                                                     "elevator": {"floor_guard": False}}))
     for k, cloud in enumerate([room] * 3 + [cab] * 3 + [room] * 2):
