@@ -318,14 +318,15 @@ def row_cost(g: ti.i32, num_src: ti.i32, best_e: ti.template(), best_n: ti.templ
 
 
 @ti.kernel
-def row_costs(n: ti.i32, num_src: ti.i32, nb: ti.template(), best_e: ti.template(),
-              best_n: ti.template(), outlier_cost: ti.f32, seen: ti.template(),
-              seen_cost: ti.f32, out: ti.types.ndarray(ndim=1)):
-    """Every (particle, neighbour) row's cost (`row_cost`); a row without a keyframe -1."""
+def local_row_costs(n: ti.i32, num_src: ti.i32, nb: ti.template(), nb_loop: ti.template(),
+                    best_e: ti.template(), best_n: ti.template(), outlier_cost: ti.f32,
+                    seen: ti.template(), seen_cost: ti.f32, out: ti.types.ndarray(ndim=1)):
+    """The cost (`row_cost`) of every (particle, neighbour) row that is not a loop; -1 for a
+    loop row and a row without a keyframe."""
     for i, j in ti.ndrange(n, NEIGHBOURS):
         g = i * NEIGHBOURS + j
         out[g] = -1.0
-        if nb[i, j] >= 0:
+        if nb[i, j] >= 0 and nb_loop[i, j] == 0:
             out[g] = row_cost(g, num_src, best_e, best_n, outlier_cost, seen, seen_cost)
 
 

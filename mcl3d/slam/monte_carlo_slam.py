@@ -346,9 +346,8 @@ class MonteCarloSlam:
         if scored:
             # after a ride the particles' heights are not the odometry's: every neighbour
             # weighs until the floor guard lets go
-            likelihood = cfg.likelihood.model_copy(update={"local_weight": 1.0}) \
-                if self.floor_guard.active else cfg.likelihood
-            p.weigh(len(src_pts), likelihood, self.free_space, free_space_cost)
+            p.weigh(len(src_pts), cfg.likelihood, self.free_space, free_space_cost,
+                    local_weight=1.0 if self.floor_guard.active else None)
         watch.lap("weigh")
         if scored and corr.refine_without_loop and cov is not None:
             p.refine(cov, corr)

@@ -189,11 +189,13 @@ class SlamParticles:
                                                                            strict=True)}
 
     def weigh(self, num_src: int, cfg: LikelihoodConfig,
-              free_space: FreeSpace | None = None, free_space_cost: float = 0.0) -> None:
+              free_space: FreeSpace | None = None, free_space_cost: float = 0.0,
+              local_weight: float | None = None) -> None:
         """Frame log-likelihood of every particle, added to its cumulative log weight;
         with `free_space`, scan points in a neighbour's seen-through space and the
         neighbour's points in the scan's (FreeSpace.count) cost `free_space_cost` each;
-        rows of keyframes that are not loops cost as `cfg.local_weight` says."""
+        a neighbour that is not a loop costs as `local_weight` says (default
+        `cfg.local_weight`)."""
         self._linearize(num_src, loop_only=False,
                         cost_cap=0.5 * cfg.outlier_cost if cfg.truncated else math.inf)
         best = self.gicp.poses.best
@@ -204,21 +206,22 @@ class SlamParticles:
             free_space.count(self, self.gicp.pool.points, num_src, stride,
                              cfg.free_space_margin_m, cfg.free_space_margin_frac, self.seen)
             seen_cost = free_space_cost * num_src / judged
-        reference = 0.0 if cfg.local_weight >= 1.0 else self._local_reference(
+        local_weight = cfg.local_weight if local_weight is None else local_weight
+        reference = 0.0 if local_weight >= 1.0 else self._local_reference(
             num_src, cfg.outlier_cost, seen_cost)
         slam_kernels.likelihood(self.n, num_src, self.nb, self.nb_loop, best.e, best.n,
                                 cfg.outlier_cost, self.seen, seen_cost, cfg.points_weight,
-                                cfg.local_weight, reference, self.frame_ll, self.log_w)
+                                local_weight, reference, self.frame_ll, self.log_w)
 
     def _local_reference(self, num_src: int, outlier_cost: float, seen_cost: float) -> float:
         """The median cost of the particles' neighbour rows that are not loops: what a scan
         costs against the map the odometry just matched it to (0 without such rows)."""
         best = self.gicp.poses.best
         costs = np.empty(self.n * NEIGHBOURS, np.float32)
-        slam_kernels.row_costs(self.n, num_src, self.nb, best.e, best.n, outlier_cost,
-                               self.seen, seen_cost, costs)
-        local = (costs >= 0) & (self.nb_loop.to_numpy().ravel() == 0)
-        return float(np.median(costs[local])) if local.any() else 0.0
+        slam_kernels.local_row_costs(self.n, num_src, self.nb, self.nb_loop, best.e, best.n,
+                                     outlier_cost, self.seen, seen_cost, costs)
+        local = costs[costs >= 0]
+        return float(np.median(local)) if len(local) else 0.0
 
     def refine(self, covariance: np.ndarray, cfg: CorrectionConfig) -> int:
         """One Gauss-Newton step of every particle without a loop toward its own neighbour

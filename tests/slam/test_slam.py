@@ -479,8 +479,9 @@ def test_the_guard_starts_when_a_ride_ends_and_only_then(ti_runtime):
     slam.floor_guard.prune_plan = lambda *a: calls.append(len(slam.frames)) or real(*a)
     weighs = []
     real_weigh = slam.particles.weigh
-    slam.particles.weigh = lambda n, cfg, *a: weighs.append(cfg.local_weight) or real_weigh(
-        n, cfg, *a)
+    slam.particles.weigh = lambda n, cfg, *a, local_weight: weighs.append(
+        cfg.local_weight if local_weight is None else local_weight) or real_weigh(
+        n, cfg, *a, local_weight=local_weight)
     states = []
     for k, cloud in enumerate([room] * 3 + [cab] * 3 + [room] * 3):
         frame = slam.step(cloud, None, k * 100_000_000)
@@ -509,7 +510,8 @@ def test_the_free_space_term_weighs_only_while_the_guard_holds_the_floors(ti_run
         {"particles": 20, "seed": 1, "elevator": {"free_space_cost": 3.0}}))
     costs = []
     real = slam.particles.weigh
-    slam.particles.weigh = lambda n, cfg, fs, cost: costs.append(cost) or real(n, cfg, fs, cost)
+    slam.particles.weigh = lambda n, cfg, fs, cost, **kw: costs.append(cost) or real(
+        n, cfg, fs, cost, **kw)
     for k, cloud in enumerate([room] * 3 + [cab] * 3 + [room] * 3):
         slam.step(cloud, None, k * 100_000_000)
     assert slam.free_space is not None
