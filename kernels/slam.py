@@ -331,6 +331,19 @@ def local_row_costs(n: ti.i32, num_src: ti.i32, nb: ti.template(), nb_loop: ti.t
 
 
 @ti.kernel
+def local_point_costs(n: ti.i32, nb: ti.template(), nb_loop: ti.template(),
+                      best_e: ti.template(), best_n: ti.template(),
+                      out: ti.types.ndarray(ndim=1)):
+    """The mean eᵀΩe of a matched point in every (particle, neighbour) row that is not a loop;
+    -1 for a loop row, a row without a keyframe and a row without a match."""
+    for i, j in ti.ndrange(n, NEIGHBOURS):
+        g = i * NEIGHBOURS + j
+        out[g] = -1.0
+        if nb[i, j] >= 0 and nb_loop[i, j] == 0 and best_n[g] > 0:
+            out[g] = 2.0 * best_e[g] / ti.cast(best_n[g], ti.f32)
+
+
+@ti.kernel
 def likelihood(n: ti.i32, num_src: ti.i32, nb: ti.template(), nb_loop: ti.template(),
                best_e: ti.template(), best_n: ti.template(), outlier_cost: ti.f32,
                seen: ti.template(), seen_cost: ti.f32, points_weight: ti.f32,

@@ -15,7 +15,8 @@ Per scan:
 4. weighting: the GICP log-likelihood against the 3 neighbours, accumulated (eq. 2-3, 11);
    a neighbour that is not a loop costs the cloud's median such row (`likelihood.local_weight`
    0): the odometry already matched the scan to the recent map, so only loops tell particles
-   apart; optionally (`correction.refine_without_loop`) particles without a loop then take
+   apart; a scan point without a voxel costs a typical matched point's cost (no evidence);
+   optionally (`correction.refine_without_loop`) particles without a loop then take
    one Gauss-Newton step toward their neighbours with the prediction as prior;
 5. keyframes: the scan becomes a keyframe for every particle when its voxel overlap with the
    last keyframe (under the odometry motion) falls below `keyframes.overlap`; once

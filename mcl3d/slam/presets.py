@@ -30,6 +30,7 @@ PAPER: dict[str, Any] = {
     # eq. 2-3: every neighbour keyframe weighs alike (the defaults: only loops tell particles
     # apart); only scan points in a keyframe voxel are scored
     "likelihood.local_weight": 1.0,
+    "likelihood.unmatched_as_typical": False,
     "likelihood.free_space_cost": 0.0,
     # §III-F
     "pruning.posterior": 1e-8,

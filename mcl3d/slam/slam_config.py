@@ -103,6 +103,11 @@ class LikelihoodConfig(Section):
                                  "(tempering; see docs/slam.md)")
     outlier_cost: float = Field(0.0, ge=0, description="cost of a scan point with no voxel "
                                 "(a matched point costs eᵀΩe; 0 as in the paper)")
+    unmatched_as_typical: bool = Field(True, description="a scan point with no voxel also "
+                                       "costs what a typical matched point costs against the "
+                                       "recent map (the median over the cloud): no evidence "
+                                       "either way, where 0 (the paper) rewards a loop "
+                                       "keyframe for seeing less of the scan")
     truncated: bool = Field(False, description="a matched point costs at most outlier_cost: "
                             "missing a voxel and matching it badly cost the same (a truncated "
                             "Gaussian; not in the paper)")

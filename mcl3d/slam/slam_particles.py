@@ -207,19 +207,30 @@ class SlamParticles:
                              cfg.free_space_margin_m, cfg.free_space_margin_frac, self.seen)
             seen_cost = free_space_cost * num_src / judged
         local_weight = cfg.local_weight if local_weight is None else local_weight
+        unmatched_cost = cfg.outlier_cost + (self._typical_point_cost()
+                                             if cfg.unmatched_as_typical else 0.0)
         reference = 0.0 if local_weight >= 1.0 else self._local_reference(
-            num_src, cfg.outlier_cost, seen_cost)
+            num_src, unmatched_cost, seen_cost)
         slam_kernels.likelihood(self.n, num_src, self.nb, self.nb_loop, best.e, best.n,
-                                cfg.outlier_cost, self.seen, seen_cost, cfg.points_weight,
+                                unmatched_cost, self.seen, seen_cost, cfg.points_weight,
                                 local_weight, reference, self.frame_ll, self.log_w)
 
-    def _local_reference(self, num_src: int, outlier_cost: float, seen_cost: float) -> float:
+    def _typical_point_cost(self) -> float:
+        """The median over the particles' non-loop rows of a matched point's mean cost: what
+        a scan point costs against the map the odometry just matched it to (0 without)."""
+        best = self.gicp.poses.best
+        costs = np.empty(self.n * NEIGHBOURS, np.float32)
+        slam_kernels.local_point_costs(self.n, self.nb, self.nb_loop, best.e, best.n, costs)
+        local = costs[costs >= 0]
+        return float(np.median(local)) if len(local) else 0.0
+
+    def _local_reference(self, num_src: int, unmatched_cost: float, seen_cost: float) -> float:
         """The median cost of the particles' neighbour rows that are not loops: what a scan
         costs against the map the odometry just matched it to (0 without such rows)."""
         best = self.gicp.poses.best
         costs = np.empty(self.n * NEIGHBOURS, np.float32)
         slam_kernels.local_row_costs(self.n, num_src, self.nb, self.nb_loop, best.e, best.n,
-                                     outlier_cost, self.seen, seen_cost, costs)
+                                     unmatched_cost, self.seen, seen_cost, costs)
         local = costs[costs >= 0]
         return float(np.median(local)) if len(local) else 0.0
 

@@ -374,6 +374,11 @@ def test_likelihood_matches_numpy(ti_runtime, local_weight):
     want_costs = row_costs_numpy(nb_rows, err, cnt, seen_rows, M, 9.0, 2.5)
     np.testing.assert_allclose(costs, np.where(loop_rows.ravel() == 1, -1.0, want_costs),
                                rtol=1e-6)  # loop rows: -1, as rows without a keyframe
+    point_costs = np.empty(3 * n, np.float32)
+    slam.local_point_costs(n, nb, nb_loop, best_e, best_n, point_costs)
+    local_matched = (nb_rows.ravel() >= 0) & (loop_rows.ravel() == 0) & (cnt > 0)
+    np.testing.assert_allclose(point_costs, np.where(local_matched, 2.0 * err / np.maximum(
+        cnt, 1), -1.0), rtol=1e-6)  # a matched point's mean cost; -1: loop, none, no match
     frame_ll = ti.field(ti.f32, n)
     log_w = ti.field(ti.f32, n)
     log_w0 = np.array([-1.0, -2.0, 0.0, -0.5], np.float32)

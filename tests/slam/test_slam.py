@@ -167,6 +167,47 @@ def test_a_zero_local_weight_leaves_only_loops_to_tell_particles_apart(ti_runtim
     np.testing.assert_allclose(frame_ll(0.0, 10.0), frame_ll(1.0, 10.0), rtol=1e-6)  # a loop
 
 
+def test_a_loop_keyframe_that_sees_none_of_the_scan_is_no_evidence(ti_runtime):
+    """Eq. 3 scores only the scan points that land in a keyframe voxel, so a particle whose
+    loop keyframe sees none of the scan outscores one that matches it. With
+    likelihood.unmatched_as_typical (the default) such a point costs what a typical matched
+    point costs against the recent map: the two score alike, and a loop matched worse than
+    typical (0.15 m off) still scores below."""
+    from mcl3d.registration.batch_gicp import BatchGicp
+    from mcl3d.registration.gaussian_voxels import GaussianVoxelMaps
+    from mcl3d.registration.preprocess import estimate_covariances, voxel_downsample
+    from mcl3d.slam.slam_config import LikelihoodConfig
+    from mcl3d.slam.slam_particles import SlamParticles
+
+    world = voxel_downsample(room_cloud(np.random.default_rng(0)), 0.2)
+    maps = GaussianVoxelMaps(max_maps=4, buckets_per_map=4096, max_points=4096)
+    for k in range(4):  # keyframe 0 (the loop, 20 m of travel back) and 1-3 saw the room
+        maps.clear(k, 0.5)
+        maps.insert(k, world, estimate_covariances(world, 10))
+    src = world[np.linspace(0, len(world) - 1, 512).astype(int)]
+    gicp = BatchGicp(maps, max_groups=15, max_rows=15, max_source_points=512)
+    gicp.set_source(src, estimate_covariances(src, 10))
+    p = SlamParticles(5, 4, gicp, seed=0)
+    p.q_cur.from_numpy(np.tile(np.array([0, 0, 0, 1], np.float32), (5, 1)))
+    p.t_cur.from_numpy(np.zeros((5, 3), np.float32))
+    for _ in range(4):
+        p.add_keyframe(0.0, np.zeros(5), np.zeros(3))
+    p.t_cur.from_numpy(np.array([[0, 0, 0], [0, 0, 0], [0, 0, 0], [0.15, 0.1, 0.05],
+                                 [30, 0, 0]], np.float32))  # 3: 0.15 m off; 4: far away
+
+    def frame_ll(typical: bool) -> np.ndarray:
+        assert p.select_neighbours(20.0, 10.0) == 5  # keyframes 0, 1, 2; 0 is a loop
+        p.log_w.fill(0.0)
+        p.weigh(len(src), LikelihoodConfig(unmatched_as_typical=typical))
+        return p.frame_ll.to_numpy()
+
+    paper, typical = frame_ll(False), frame_ll(True)
+    # 0 and 4 share the reference rows; 0's loop row costs what one of them does, 4's nothing
+    np.testing.assert_allclose(paper[4], paper[0] * 2 / 3, rtol=1e-4)  # missing the loop pays
+    np.testing.assert_allclose(typical[4], typical[0], rtol=1e-4)  # no evidence either way
+    assert typical[3] < 10 * typical[0] and paper[3] < 10 * paper[0]  # a worse match loses
+
+
 @pytest.fixture(scope="module")
 def forest_log(tmp_path_factory):
     from mcl3d.sim.pipeline import SimulateRequest, run
