@@ -106,8 +106,9 @@ class LikelihoodConfig(Section):
     unmatched_as_typical: bool = Field(True, description="a scan point with no voxel also "
                                        "costs what a typical matched point costs against the "
                                        "recent map (the median over the cloud): no evidence "
-                                       "either way, where 0 (the paper) rewards a loop "
-                                       "keyframe for seeing less of the scan")
+                                       "either way; off (the paper), such a point is free, "
+                                       "which rewards a loop keyframe for seeing less of the "
+                                       "scan")
     truncated: bool = Field(False, description="a matched point costs at most outlier_cost: "
                             "missing a voxel and matching it badly cost the same (a truncated "
                             "Gaussian; not in the paper)")
