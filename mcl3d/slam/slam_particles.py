@@ -221,8 +221,7 @@ class SlamParticles:
         best = self.gicp.poses.best
         costs = np.empty(self.n * NEIGHBOURS, np.float32)
         slam_kernels.local_point_costs(self.n, self.nb, self.nb_loop, best.e, best.n, costs)
-        local = costs[costs >= 0]
-        return float(np.median(local)) if len(local) else 0.0
+        return _median_of_filled(costs)
 
     def _local_reference(self, num_src: int, unmatched_cost: float, seen_cost: float) -> float:
         """The median cost of the particles' neighbour rows that are not loops: what a scan
@@ -231,8 +230,7 @@ class SlamParticles:
         costs = np.empty(self.n * NEIGHBOURS, np.float32)
         slam_kernels.local_row_costs(self.n, num_src, self.nb, self.nb_loop, best.e, best.n,
                                      unmatched_cost, self.seen, seen_cost, costs)
-        local = costs[costs >= 0]
-        return float(np.median(local)) if len(local) else 0.0
+        return _median_of_filled(costs)
 
     def refine(self, covariance: np.ndarray, cfg: CorrectionConfig) -> int:
         """One Gauss-Newton step of every particle without a loop toward its own neighbour
@@ -292,3 +290,9 @@ class SlamParticles:
         if K:
             slam_kernels.gather_keyframes(i, K, self.kf, out)
         return unpack_poses(out[:K])
+
+
+def _median_of_filled(rows: np.ndarray) -> float:
+    """The median of the rows a kernel filled (it leaves -1 in the others); 0 without any."""
+    filled = rows[rows >= 0]
+    return float(np.median(filled)) if len(filled) else 0.0
