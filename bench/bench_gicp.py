@@ -10,7 +10,8 @@
    scan around the reference pose (1° and 10 cm per axis, seed 0), one Gauss-Newton iteration
    of every pose (linearize, solve, update), against voxel maps (1 m) of the target in two
    layouts: one map shared by every pose, and one map per pose (map k: a random 80% of the
-   target's points, seed 0, so that no two maps hold the same numbers; 2,048 buckets each).
+   target's points, seed 0, so that no two maps hold the same numbers; 2,048 buckets each;
+   `--maps M`: M such maps, pose k using map k mod M).
    Baselines doing the same arithmetic in the same run (bench/gicp_baselines.py): Numba
    (compiled, parallel over poses on every thread, a hash table per map) and vectorized
    NumPy, both float32, one voxel per point, the same centred sums, Jacobi-scaled Cholesky and
@@ -121,7 +122,7 @@ def pairwise(args, target_raw, source_raw, reference):
 
 class Layout:
     """One batched problem, set up for mcl3d and for the baselines: poses, source points and
-    maps (`num_maps` 1: shared; else map k serves pose k)."""
+    maps (`num_maps` 1: shared; else map k serves poses k, k + num_maps, ...)."""
 
     def __init__(self, args, target, pts, covs, poses, num_maps, rng):
         import gicp_baselines as gb
@@ -131,7 +132,8 @@ class Layout:
 
         P = len(poses)
         buckets = 1 << 15 if num_maps == 1 else MAP_BUCKETS
-        self.name = "one shared map" if num_maps == 1 else f"one map per pose ({num_maps})"
+        self.name = ("one shared map" if num_maps == 1 else f"one map per pose ({num_maps})"
+                     if num_maps == P else f"{num_maps} maps, {P // num_maps} poses each")
         self.maps = GaussianVoxelMaps(max_maps=num_maps, buckets_per_map=buckets,
                                       max_points=len(target.points))
         self.base = gb.VoxelMaps(args.batch_resolution, buckets, num_maps)
@@ -297,7 +299,7 @@ def batched(args, target, source, reference) -> dict:
     poses = np.stack([reference @ se3(so3_exp(np.radians(1.0) * rng.normal(size=3)),
                                       0.1 * rng.normal(size=3)) for _ in range(args.poses)])
     speed, checks, accuracy, setup = [], [], [], {}
-    for num_maps in (1, args.poses):
+    for num_maps in (1, args.maps or args.poses):
         layout = Layout(args, target, pts, covs, poses, num_maps, rng)
         setup[layout.name] = {"voxels": layout.voxels, "build_s": round(layout.build_s, 1)}
         checks += validate(layout, min(args.poses, 256))
@@ -356,6 +358,9 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--poses", type=int, default=10000)
     parser.add_argument("--points", type=int, default=512)
+    parser.add_argument("--maps", type=int, default=None,
+                        help="maps of the second layout, poses sharing them in turn (default: "
+                             "one per pose; each map is built and checked on the host, ~20 ms)")
     parser.add_argument("--iterations", type=int, default=10,
                         help="GN iterations timed per block (batched case)")
     parser.add_argument("--batch-repeats", type=int, default=5,
