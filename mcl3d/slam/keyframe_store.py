@@ -41,20 +41,26 @@ def slot_to_reuse(T_slots: np.ndarray, seq: np.ndarray, protected: set[int],
 
 
 class KeyframeBook:
-    """Per keyframe number the scan that made it, per slot the keyframe's cloud (lidar frame),
-    and the frozen poses of dropped keyframes."""
+    """Per keyframe number the scan that made it and the odometry's drift variance then, per
+    slot the keyframe's cloud (lidar frame), and the frozen poses of dropped keyframes."""
 
     def __init__(self) -> None:
         self.frames: list[int] = []  # scan index of keyframe number s
+        # the prediction's rotational, translational and elevator variance summed up to number s
+        self.drift_variance: list[tuple[float, float, float]] = []
         self.clouds: list[np.ndarray] = []  # by slot
         self.retired: dict[int, np.ndarray] = {}  # number -> pose when it was dropped
 
     def __len__(self) -> int:
         return len(self.frames)
 
-    def add(self, slot: int, frame_index: int, cloud: np.ndarray) -> None:
-        """Keyframe number len(self) made from scan `frame_index`, in `slot`."""
+    def add(self, slot: int, frame_index: int, cloud: np.ndarray,
+            drift_variance: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> None:
+        """Keyframe number len(self) made from scan `frame_index`, in `slot`, when the
+        prediction's rotational and translational variance and the elevator's vertical random
+        walk summed along the path were `drift_variance` (rad², m², m²; see loop_bridge)."""
         self.frames.append(frame_index)
+        self.drift_variance.append(drift_variance)
         if slot == len(self.clouds):
             self.clouds.append(cloud)
         else:

@@ -67,6 +67,7 @@ from mcl3d.slam.floor_guard import FloorGuard, stratified_prune_plan
 from mcl3d.slam.frame_store import SlamFrame, SlamFrames
 from mcl3d.slam.free_space import FreeSpace
 from mcl3d.slam.keyframe_store import KeyframeBook, slot_to_reuse
+from mcl3d.slam.loop_bridge import anchored_keyframes, bridge_between_anchors
 from mcl3d.slam.slam_config import PredictionNoiseConfig, PruningConfig, SlamConfig
 from mcl3d.slam.slam_particles import DRIFT_SUMS, SlamParticles
 
@@ -223,6 +224,7 @@ class MonteCarloSlam:
         self.floor_guard = FloorGuard(cfg.elevator, cfg.pruning,  # floors kept after a ride
                                       cfg.loop_closure.neighbour_max_dz_m)
         self.vertical_offset = np.zeros(3)  # elevator motion the odometry did not see
+        self._ride_variance_m2 = 0.0  # the elevator's vertical random walk, summed
 
     # ---- one scan ----
 
@@ -304,6 +306,7 @@ class MonteCarloSlam:
         if lift is not None:
             p.shift_vertical(*lift, 2 * step + 1)
             self.drift[4] += lift[2] ** 2  # the elevator's random walk
+            self._ride_variance_m2 += lift[2] ** 2
         return cov
 
     def _free_space_cost(self) -> float:
@@ -461,7 +464,9 @@ class MonteCarloSlam:
         self.maps.insert(k, pts, cv)
         if self.free_space is not None:
             self.free_space.store(k, points, down)
-        self.keyframes.add(k, len(self.frames), down.astype(np.float32))
+        self.keyframes.add(k, len(self.frames), down.astype(np.float32),
+                           (float(self.drift[0]), float(self.drift[4]) - self._ride_variance_m2,
+                            self._ride_variance_m2))
         self._last_keys = unique_keys(voxel_keys(down, self.cfg.keyframes.overlap_voxel_m))
 
     def _slot_to_reuse(self, loops: dict[int, tuple[int, ...]]) -> int:
@@ -508,16 +513,29 @@ class MonteCarloSlam:
     # ---- results of the representative particle ----
 
     def representative_keyframes(self) -> np.ndarray:
-        """The representative's poses of the keyframes kept, oldest first."""
+        """The representative's poses of the keyframes kept, oldest first, as the filter holds
+        them (the written trajectory and map bridge them between loops)."""
         return self.particles.keyframe_poses(self._rep)[self.particles.slots_in_order()]
+
+    def _keyframe_poses_by_number(self) -> np.ndarray:
+        """(keyframes made, 4, 4): the representative's pose of every keyframe, bridged
+        between the keyframes where it took a loop correction when so configured."""
+        p = self.particles
+        T = self.keyframes.poses_by_number(p.keyframe_poses(self._rep), p.seq)
+        if not self.cfg.trajectory.bridge_between_loops or len(T) == 0:
+            return T
+        kf_frames = np.asarray(self.keyframe_frames)
+        loop_scans = np.flatnonzero((self.frames.loop_keyframes >= 0).any(axis=1))
+        return bridge_between_anchors(T, self.frames.poses("T_motion_lidar")[kf_frames],
+                                      np.asarray(self.keyframes.drift_variance),
+                                      anchored_keyframes(loop_scans, kf_frames), self._up())
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
         """(stamps_ns, poses) of every scan as the representative particle's map places it:
         each scan hangs off the keyframe before it by the odometry motion since then, so
         the trajectory follows the loop corrections of its keyframes (a keyframe dropped
         from a full store keeps the pose it had then)."""
-        p = self.particles
-        kf_poses = self.keyframes.poses_by_number(p.keyframe_poses(self._rep), p.seq)
+        kf_poses = self._keyframe_poses_by_number()
         kf_frames = self.keyframe_frames
         frames = self.frames
         motion = frames.poses("T_motion_lidar")
@@ -532,7 +550,8 @@ class MonteCarloSlam:
 
     def map_points(self) -> np.ndarray:
         """The union of the kept keyframes' clouds under the representative's poses."""
-        kf_poses = self.particles.keyframe_poses(self._rep)  # by slot, as the clouds
+        p = self.particles
+        kf_poses = self._keyframe_poses_by_number()[p.seq[:p.num_keyframes]]  # by slot
         clouds = [transform_points(T, c.astype(np.float64))
                   for T, c in zip(kf_poses, self.keyframes.clouds, strict=True)]
         return np.concatenate(clouds) if clouds else np.zeros((0, 3))

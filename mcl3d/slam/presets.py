@@ -41,6 +41,8 @@ PAPER: dict[str, Any] = {
     "elevator.exit_open_sectors": 0,
     "elevator.free_space_cost": 0.0,
     "elevator.floor_guard": False,
+    # the best particle's own map is the result
+    "trajectory.bridge_between_loops": False,
 }
 
 PRESETS: dict[str, dict[str, Any]] = {"default": {}, "paper": PAPER}

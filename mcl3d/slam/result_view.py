@@ -62,9 +62,8 @@ class SlamView:
         pub.publish_hypotheses(stamp, [(T, cov, share) for T, cov, share, best in hyps
                                        if best != frame.representative])
         self.publish_loops(frame)
-        kf_poses = slam.representative_keyframes()
         if frame.keyframe or frame.loop_keyframes or len(slam.frames) % TRAJECTORY_EVERY == 1:
-            pub.publish_keyframes(stamp, kf_poses)
+            pub.publish_keyframes(stamp, slam.representative_keyframes())
             pub.publish_trajectories(stamp, [self._path(slam, best) for *_, best in hyps])
         pub.publish_stats(stamp, {
             "ess": frame.ess, "hypotheses": frame.hypotheses, "looping": frame.looping,

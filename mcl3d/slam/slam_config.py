@@ -192,6 +192,17 @@ class ElevatorConfig(Section):
                                     "many scored scans in a row")
 
 
+class TrajectoryConfig(Section):
+    """How the representative particle's keyframes become the written trajectory and map."""
+
+    bridge_between_loops: bool = Field(True, description="between keyframes where the "
+                                       "representative took a loop correction, its keyframes "
+                                       "follow the odometry bent by those anchors' offsets "
+                                       "(the mean of its prediction noise's random walk given "
+                                       "the ends; mcl3d/slam/loop_bridge.py); off: the "
+                                       "particle's own poses, as in the paper")
+
+
 class SlamConfig(Section):
     """Everything `MonteCarloSlam` uses."""
 
@@ -206,6 +217,7 @@ class SlamConfig(Section):
     pruning: PruningConfig = PruningConfig()
     elevator: ElevatorConfig = ElevatorConfig()
     odometry: OdometryConfig = OdometryConfig()
+    trajectory: TrajectoryConfig = TrajectoryConfig()
 
     @model_validator(mode="after")
     def _keyframe_voxels_hold_scans(self) -> SlamConfig:

@@ -382,6 +382,7 @@ def test_slam_preset_paper_and_an_unknown_preset(forest_log, tmp_path, ti_runtim
     assert saved["correction"]["refine_without_loop"] is False
     assert saved["loop_closure"]["facing_gate"] is False
     assert saved["prediction_noise"]["odometry_scale"] == 1.0
+    assert saved["trajectory"]["bridge_between_loops"] is False
     bad = tmp_path / "bad"
     result = slam_cli(str(forest_log), "-o", str(bad), "--preset", "nope")
     assert isinstance(result.exception, ConfigError)
