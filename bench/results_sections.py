@@ -442,9 +442,9 @@ Same runs (2,000 particles, no IMU, 180°; 2026-11-27, 2-core cpu): paper-forest
 0.383 / 0.695 / 0.728 / 0.484 / 0.390 m (unbridged 0.382 / 0.761 / 0.730 / 0.485 / 0.418;
 1.12 / 0.61 / 0.65 / 0.65 / 0.86× the front-end), the forest loop 0.058 m. With 4× the
 prediction noise the cloud holds the truth in its 95% region in 73–81% of scans (seeds 1–3)
-and bridging brings seed 2 from 0.836 to 0.718 m, but seeds 1 and 3 keep 17 and 10 wrong loop
-corrections. paper-elevator (1,000 particles, bridged): the right floor in 5 of 5 seeds without the
-IMU (SLAM 0.61–0.67 m) and with it (0.047–0.112 m), no wrong loop correction.
+and bridging brings seed 2 from 0.836 to 0.718 m, but seeds 1 and 3 keep 17 and 10 wrong
+loop corrections. paper-elevator (1,000 particles, bridged): the right floor in 5 of 5 seeds
+without the IMU (SLAM 0.61–0.67 m) and with it (0.047–0.112 m), no wrong loop correction.
 
 
 `paper-elevator` (`mcl3d simulate building --trajectory paper-elevator`: 1F → 3F by the

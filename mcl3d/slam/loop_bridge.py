@@ -18,7 +18,7 @@ import numpy as np
 
 from mcl3d.core.geometry import hat, se3_exp, se3_inverse, se3_log
 
-BRIDGE_ITERATIONS = 3  # Gauss-Newton steps per chain (the end error falls to ~1e-9 in 2)
+BRIDGE_ITERATIONS = 3  # Gauss-Newton steps per chain: 10° and 2.6 m over 40 steps miss by < 1e-6
 MIN_STEP_VARIANCE = 1e-12  # added to a step's variances (rad², m²): a step without drift
 
 

@@ -197,8 +197,8 @@ class TrajectoryConfig(Section):
 
     bridge_between_loops: bool = Field(True, description="between keyframes where the "
                                        "representative took a loop correction, its keyframes "
-                                       "follow the odometry bent by those anchors' offsets "
-                                       "(the mean of its prediction noise's random walk given "
+                                       "follow the odometry, bent least onto those anchors "
+                                       "(the most likely path of its prediction noise given "
                                        "the ends; mcl3d/slam/loop_bridge.py); off: the "
                                        "particle's own poses, as in the paper")
 
