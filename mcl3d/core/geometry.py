@@ -101,6 +101,14 @@ def se3_inverse(T: np.ndarray) -> np.ndarray:
     return se3(Rt, -(Rt @ T[..., :3, 3:4])[..., 0])
 
 
+def se3_adjoint(T: np.ndarray) -> np.ndarray:
+    """6x6 adjoint of a pose for rotation-first tangents (w, v): T exp(ξ) T⁻¹ = exp(Ad_T ξ)."""
+    R, t = T[:3, :3], T[:3, 3]
+    Ad = np.zeros((6, 6))
+    Ad[:3, :3], Ad[3:, 3:], Ad[3:, :3] = R, R, hat(t) @ R
+    return Ad
+
+
 def relative_se3(T_a: np.ndarray, T_b: np.ndarray) -> np.ndarray:
     """inv(T_a) @ T_b: the motion from pose a to pose b, expressed in a."""
     return se3_inverse(T_a) @ np.asarray(T_b, dtype=np.float64)

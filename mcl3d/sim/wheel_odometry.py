@@ -15,7 +15,7 @@ import numpy as np
 from pydantic import Field
 
 from mcl3d.core.config import Section
-from mcl3d.core.geometry import hat, se3_exp, se3_inverse, se3_log
+from mcl3d.core.geometry import se3_adjoint, se3_exp, se3_inverse, se3_log
 from mcl3d.sim.trajectories import SimTrajectory
 
 
@@ -35,14 +35,6 @@ class WheelOdometryConfig(Section):
     velocity_noise: tuple[float, float] = Field(
         (0.0, 0.0), description="white noise sigma on the integrated velocity and angular "
         "velocity (m/s, rad/s): the MCL paper's odometry, ground truth plus noise of sigma")
-
-
-def adjoint(T: np.ndarray) -> np.ndarray:
-    """6x6 adjoint of a pose for rotation-first tangents."""
-    R, t = T[:3, :3], T[:3, 3]
-    Ad = np.zeros((6, 6))
-    Ad[:3, :3], Ad[3:, 3:], Ad[3:, :3] = R, R, hat(t) @ R
-    return Ad
 
 
 class WheelOdometrySimulator:
@@ -96,6 +88,6 @@ class WheelOdometrySimulator:
         Q = np.diag([var_rot] * 3 + [var_trans] * 3)
         noise = np.sqrt(np.diag(Q)) * self.rng.standard_normal(6)
         step = se3_exp(xi_meas) @ se3_exp(noise)
-        Ad = adjoint(se3_inverse(step))
+        Ad = se3_adjoint(se3_inverse(step))
         self._cov = Ad @ self._cov @ Ad.T + Q
         self._T_est = self._T_est @ step

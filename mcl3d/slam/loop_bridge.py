@@ -16,7 +16,7 @@ from itertools import pairwise
 
 import numpy as np
 
-from mcl3d.core.geometry import hat, se3_exp, se3_inverse, se3_log
+from mcl3d.core.geometry import se3_adjoint, se3_exp, se3_inverse, se3_log
 
 BRIDGE_ITERATIONS = 3  # Gauss-Newton steps per chain: 10° and 2.6 m over 40 steps miss by < 1e-6
 MIN_STEP_VARIANCE = 1e-12  # added to a step's variances (rad², m²): a step without drift
@@ -29,15 +29,6 @@ def anchored_keyframes(loop_scans: np.ndarray, keyframe_scans: np.ndarray) -> np
     newest = np.searchsorted(keyframe_scans, loop_scans, side="right") - 1
     anchored[newest[newest >= 0]] = True
     return anchored
-
-
-def adjoint(T: np.ndarray) -> np.ndarray:
-    """6x6 adjoint of T for tangents (w, v): T exp(ξ) T⁻¹ = exp(Ad_T ξ)."""
-    R, t = T[:3, :3], T[:3, 3]
-    out = np.zeros((6, 6))
-    out[:3, :3] = out[3:, 3:] = R
-    out[3:, :3] = hat(t) @ R
-    return out
 
 
 def bridge_between_anchors(T_world_keyframe: np.ndarray, T_motion_keyframe: np.ndarray,
@@ -83,7 +74,7 @@ def _two_ended_chain(T_start: np.ndarray, T_end: np.ndarray, motion: list[np.nda
             poses.append(poses[-1] @ motion[j] @ se3_exp(delta[j]))
         residual = se3_log(se3_inverse(poses[-1]) @ T_end)
         # a step's δ_j moves the end by Ad((T_{j+1}⁻¹ T_end)⁻¹) δ_j, in the end's frame
-        J = np.stack([adjoint(se3_inverse(se3_inverse(poses[j + 1]) @ poses[-1]))
+        J = np.stack([se3_adjoint(se3_inverse(se3_inverse(poses[j + 1]) @ poses[-1]))
                       for j in range(n)])
         S = np.einsum("jab,jbc,jdc->ad", J, W, J)
         lam = np.linalg.solve(S, residual)
