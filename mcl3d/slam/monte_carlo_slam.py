@@ -225,6 +225,7 @@ class MonteCarloSlam:
                                       cfg.loop_closure.neighbour_max_dz_m)
         self.vertical_offset = np.zeros(3)  # elevator motion the odometry did not see
         self._ride_variance_m2 = 0.0  # the elevator's vertical random walk, summed
+        self._written_keyframes = None  # ((scans, bridged), poses) of the last result asked
 
     # ---- one scan ----
 
@@ -519,16 +520,22 @@ class MonteCarloSlam:
 
     def _keyframe_poses_by_number(self) -> np.ndarray:
         """(keyframes made, 4, 4): the representative's pose of every keyframe, bridged
-        between the keyframes where it took a loop correction when so configured."""
+        between the keyframes where it took a loop correction when so configured (kept until
+        the next scan: the trajectory and the map both ask at the end of a run)."""
+        bridge = self.cfg.trajectory.bridge_between_loops
+        key = (len(self.frames), bridge)
+        if self._written_keyframes is not None and self._written_keyframes[0] == key:
+            return self._written_keyframes[1]
         p = self.particles
         T = self.keyframes.poses_by_number(p.keyframe_poses(self._rep), p.seq)
-        if not self.cfg.trajectory.bridge_between_loops or len(T) == 0:
-            return T
-        kf_frames = np.asarray(self.keyframe_frames)
-        loop_scans = np.flatnonzero((self.frames.loop_keyframes >= 0).any(axis=1))
-        return bridge_between_anchors(T, self.frames.poses("T_motion_lidar")[kf_frames],
-                                      np.asarray(self.keyframes.drift_variance),
-                                      anchored_keyframes(loop_scans, kf_frames), self._up())
+        if bridge and len(T):
+            kf_frames = np.asarray(self.keyframe_frames)
+            loop_scans = np.flatnonzero((self.frames.loop_keyframes >= 0).any(axis=1))
+            T = bridge_between_anchors(T, self.frames.poses("T_motion_lidar")[kf_frames],
+                                       np.asarray(self.keyframes.drift_variance),
+                                       anchored_keyframes(loop_scans, kf_frames), self._up())
+        self._written_keyframes = (key, T)
+        return T
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
         """(stamps_ns, poses) of every scan as the representative particle's map places it:
