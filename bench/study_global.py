@@ -46,6 +46,10 @@ ground truth plus white noise of S on velocity and angular velocity, as the pape
 (0.1 in its arena):
 
     python bench/study_global.py --worlds arena --sensor os0-64 --sigma 0.1 --preset paper
+
+The paper's office experiment, 11 trajectories in one world on one map: `--trajectory
+paper-office-{seed} --world-seed 1 --seeds 1 2 ... 11` (each tour starts in a look-alike room,
+the corridor or the open area; `mcl3d simulate office --trajectory paper-office-K`).
 """
 
 from __future__ import annotations
@@ -83,27 +87,39 @@ def log_config(work: Path, sigma: float | None) -> list:
     return ["--config", cfg]
 
 
-def variant_tag(args) -> str:
+def trajectory(world: str, seed: int, args) -> str:
+    """The localized log's route: the world's own, or --trajectory with {seed} filled in."""
+    return WORLDS[world] if args.trajectory is None else args.trajectory.format(seed=seed)
+
+
+def world_seed(seed: int, args) -> int:
+    return seed if args.world_seed is None else args.world_seed
+
+
+def variant_tag(world: str, seed: int, args) -> str:
     """Names a log/run by what differs from the study's original setting."""
-    tag = "" if args.sensor is None else f"_{args.sensor}"
+    tag = "" if args.trajectory is None else f"_{trajectory(world, seed, args)}"
+    tag += "" if args.world_seed is None else f"_w{args.world_seed}"
+    tag += "" if args.sensor is None else f"_{args.sensor}"
     return tag if args.sigma is None else f"{tag}_sigma{args.sigma:g}"
 
 
 def make_data(work: Path, world: str, seed: int, args) -> tuple[Path, Path, Path]:
     """The seed's log and map (cached: simulated and built once)."""
-    name = f"{world}_{seed}{variant_tag(args)}"
-    log, mesh = work / f"{name}.mcap", work / f"{world}_{seed}.ply"
+    name = f"{world}_{seed}{variant_tag(world, seed, args)}"
+    wseed = world_seed(seed, args)
+    log, mesh = work / f"{name}.mcap", work / f"{world}_{wseed}.ply"
     sensor = [] if args.sensor is None else ["--sensor", args.sensor]
     if not log.exists():
-        mcl3d("simulate", world, "-o", log, "--trajectory", WORLDS[world], "--duration",
-              args.duration, "--seed", seed, "--export-mesh", mesh, *sensor,
-              *log_config(work, args.sigma), "--force")
+        mcl3d("simulate", world, "-o", log, "--trajectory", trajectory(world, seed, args),
+              "--duration", args.duration, "--seed", seed, "--world-seed", wseed,
+              "--export-mesh", mesh, *sensor, *log_config(work, args.sigma), "--force")
     if args.map_source == "mesh":
-        tsdf = work / f"{world}_{seed}.tsdf"
+        tsdf = work / f"{world}_{wseed}.tsdf"
         if not tsdf.exists():
             mcl3d("build-map", mesh, "-o", tsdf, "--backend", "cpu", "--force")
     else:
-        tsdf = map_from_log(work, world, seed, args)
+        tsdf = map_from_log(work, world, wseed, args)
     return log, tsdf, work / f"{name}_gt.tum"
 
 
@@ -312,11 +328,12 @@ def localize_once(log: Path, tsdf: Path, out: Path, n: int, seed: int, args) -> 
 
 
 def setting(run: dict) -> str:
-    """The map, the lidar and the odometry of a run (older JSON: mesh, VLP-16, simulated
-    wheel odometry)."""
+    """The map, the lidar, the odometry and the routes of a run (older JSON: mesh, VLP-16,
+    simulated wheel odometry, the world's own route)."""
     sigma = run.get("odometry_sigma")
     odometry = "wheel odometry" if sigma is None else f"truth + sigma {sigma:g}"
-    return f"{run.get('map', 'mesh')} map, {run.get('sensor', 'vlp16')}, {odometry}"
+    route = "" if run.get("routes") is None else f", {run['routes']}"
+    return f"{run.get('map', 'mesh')} map, {run.get('sensor', 'vlp16')}, {odometry}{route}"
 
 
 def summarize(runs: list[dict], worlds, particles) -> list[dict]:
@@ -395,6 +412,11 @@ def main() -> None:
                     "another log of the world at its true poses or its odometry's")
     ap.add_argument("--sensor", help="simulated lidar (default: vlp16), e.g. os0-64 as the "
                     "paper's arena")
+    ap.add_argument("--trajectory", help="the localized logs' route instead of the world's "
+                    "own; {seed} is replaced by the log seed, e.g. paper-office-{seed}: the "
+                    "MCL paper's 11 office trajectories with seeds 1-11")
+    ap.add_argument("--world-seed", type=int, help="every log and map in this one world "
+                    "(default: each log seed's own world)")
     ap.add_argument("--sigma", type=float,
                     help="odometry = ground truth + white noise of this sigma on velocity "
                     "and angular velocity (m/s, rad/s), as the paper's sweep")
@@ -447,14 +469,16 @@ def main() -> None:
                 if args.map_source != "mesh":
                     suffix += f"_{args.map_source}"
                 suffix += args.tag
-                out = args.work / f"{world}_{seed}{variant_tag(args)}_{n}{suffix}"
+                out = args.work / f"{world}_{seed}{variant_tag(world, seed, args)}_{n}{suffix}"
                 timing = localize_once(log, tsdf, out, n, seed, args)
                 d, a = scan_errors(out, gt)
                 claimed = np.array([s == "converged" for s in timing.pop("states")][:len(d)])
                 wrong = claimed & ((d[:len(claimed)] > WRONG_M) | (a[:len(claimed)] > WRONG_DEG))
                 run = {"preset": args.preset, "world": world, "seed": seed, "particles": n,
                        "map": args.map_source, "sensor": args.sensor or "vlp16",
-                       "odometry_sigma": args.sigma,
+                       "odometry_sigma": args.sigma, "routes": args.trajectory,
+                       "trajectory": trajectory(world, seed, args),
+                       "world_seed": world_seed(seed, args),
                        "scans": len(d),
                        **timing, **evaluate_run(d, a, args.tail),
                        "rmse_after_filter_converged_m": tracking_rmse(

@@ -38,6 +38,7 @@ from mcl3d.sim.trajectories import (
     VALID,
     build_trajectory,
     default_duration_s,
+    listed,
 )
 from mcl3d.sim.wheel_odometry import WheelOdometryConfig, WheelOdometrySimulator
 from mcl3d.sim.worlds import WORLDS, build_world
@@ -161,10 +162,10 @@ def _validate(req: SimulateRequest) -> None:
         raise ConfigError(f"unknown sensor {req.sensor!r}; choose one of {', '.join(SENSORS)}")
     if req.trajectory not in TRAJECTORIES:
         raise ConfigError(f"unknown trajectory {req.trajectory!r}; choose one of "
-                          f"{', '.join(TRAJECTORIES)}")
+                          f"{listed(TRAJECTORIES)}")
     if req.trajectory not in VALID[req.world]:
         raise ConfigError(f"trajectory {req.trajectory!r} does not fit world {req.world!r}; "
-                          f"choose one of {', '.join(VALID[req.world])}")
+                          f"choose one of {listed(VALID[req.world])}")
     if req.duration_s is not None and (not np.isfinite(req.duration_s)
                                        or req.duration_s <= 0):
         raise ConfigError(f"the duration must be > 0 seconds, got {req.duration_s:g}",

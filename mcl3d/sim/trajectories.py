@@ -23,18 +23,25 @@ from scipy.ndimage import gaussian_filter1d
 from mcl3d.core.errors import ConfigError
 from mcl3d.core.geometry import se3, se3_inverse
 from mcl3d.sim.spline import QuinticHermite, catmull_rom_rates, knot_accelerations
-from mcl3d.sim.worlds import World
+from mcl3d.sim.worlds import PAPER_OFFICE_TOURS, World
 
+PAPER_OFFICE = tuple(f"paper-office-{k}" for k in range(1, PAPER_OFFICE_TOURS + 1))
 TRAJECTORIES = ("ground", "loop", "handheld", "drone", "elevator", "kidnap", "survey",
-                "paper-forest", "paper-elevator")
+                "paper-forest", "paper-elevator", *PAPER_OFFICE)
 VALID = {
-    "office": ("ground", "loop", "handheld", "kidnap", "survey"),
+    "office": ("ground", "loop", "handheld", "kidnap", "survey", *PAPER_OFFICE),
     "building": ("ground", "loop", "handheld", "elevator", "kidnap", "paper-elevator"),
     "forest": ("ground", "loop", "handheld", "drone", "kidnap", "paper-forest"),
     "arena": ("ground", "loop", "handheld", "drone", "kidnap"),
     "warehouse": ("ground", "loop", "handheld", "kidnap"),
 }
 GRAVITY_MPS2 = 9.80665
+
+
+def listed(kinds: tuple[str, ...]) -> str:
+    """Trajectory names for a message, the paper's office tours as one range."""
+    short = [k for k in kinds if k not in PAPER_OFFICE[1:]]
+    return ", ".join(f"{k}..{len(PAPER_OFFICE)}" if k == PAPER_OFFICE[0] else k for k in short)
 REST_S = 1.5  # the rig stands still this long at the start and end of each path
 
 
@@ -490,6 +497,9 @@ def default_duration_s(world: World, kind: str) -> float:
         return float(np.ceil(_paper_forest_path(world)[0][-1]))
     if kind == "paper-elevator":
         return float(np.ceil(_paper_elevator_paths(world)[1][0][-1]))
+    if kind in PAPER_OFFICE:
+        return float(np.ceil(_timed_path(world.routes[kind], STYLES["ground"], 0.0, None,
+                                         closed=True)[0][-1]))
     return 10.0
 
 
@@ -501,7 +511,7 @@ def build_trajectory(world: World, kind: str, duration_s: float, seed: int = 0) 
     valid = VALID[world.name]
     if kind not in valid:
         raise ConfigError(f"trajectory {kind!r} does not fit world {world.name!r}; "
-                          f"choose one of {', '.join(valid)}")
+                          f"choose one of {listed(valid)}")
     rng = np.random.default_rng([seed, 7])
     if kind == "elevator":
         return _elevator(world, duration_s, rng)
@@ -509,11 +519,13 @@ def build_trajectory(world: World, kind: str, duration_s: float, seed: int = 0) 
         return _paper_forest(world, duration_s, rng)
     if kind == "paper-elevator":
         return _paper_elevator(world, duration_s, rng)
-    rig = {"loop": "ground", "kidnap": "ground", "survey": "ground"}.get(kind, kind)
+    rig = "ground" if kind in ("loop", "kidnap", "survey", *PAPER_OFFICE) else kind
     route = world.routes[world.kidnap_route if kind == "kidnap" else kind]
     level = len(world.floor_z_m) - 1 if kind == "kidnap" else 0
     z_ref = world.floor_z_m[level]
-    t, xy, heading = _timed_path(route, STYLES[rig], 0.0, duration_s + 1.0, closed=True)
+    once = kind in PAPER_OFFICE  # a tour: once round, then at rest (other routes repeat)
+    t, xy, heading = _timed_path(route, STYLES[rig], 0.0, None if once else duration_s + 1.0,
+                                 closed=True)
     values = _pose_values(world, rig, t, xy, heading, z_ref, world.name == "building", rng)
     stops = np.zeros(len(t), dtype=bool)
     stops[[0, -1]] = True

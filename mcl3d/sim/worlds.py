@@ -195,14 +195,61 @@ def office(seed: int = 0, n_rooms: int = 8, room_width_m: float = 6.0,
             (5.75, yc)]
     kidnap = [(2.0, yc), *room_visit(0), *room_visit(1), *room_visit(2), (20.5, yc)]
     survey = [(2.0, yc), *[p for i in range(n_rooms) for p in room_visit(i)], *loop[15:]]
+    tours = _office_tours(room_visit, n_rooms, yc, [0.5 * (a + b) for a, b in openings],
+                          lanes_y=(14.5, 17.0))
     return World(
         name="office", seed=seed, static=b.build(), ground=g.build(),
         routes={"ground": np.array(ground), "loop": np.array(loop), "kidnap": np.array(kidnap),
-                "handheld": np.array(loop), "survey": np.array(survey)},
+                "handheld": np.array(loop), "survey": np.array(survey), **tours},
         floor_z_m=[0.0], T_kidnap=se3(np.eye(3), [4 * room_width_m, 0.0, 0.0]),
         kidnap_route="kidnap",
         info={"size": f"{length:.0f} x {width:.0f} m", "rooms": str(n_rooms)},
     )
+
+
+PAPER_OFFICE_TOURS = 11  # the MCL paper repeated its office experiment on 11 trajectories
+
+
+def _office_tours(room_visit, n_rooms: int, yc: float, openings_x: list[float],
+                  lanes_y: tuple[float, float]) -> dict[str, np.ndarray]:
+    """The office's `paper-office-K` routes, K = 1..11: closed tours that start where the MCL
+    paper's global localization has to tell look-alike places apart (inside one of the
+    near-identical rooms, eight tours; in the corridor, two; in the open area, one), visit a
+    room four doors away, cross the open area (over both ramps, or along the pillars) and
+    come back to the start. Fixed by the world's size alone, so every seed drives the same
+    tour with its own noise."""
+    def leave(i: int) -> list[tuple[float, float]]:  # from inside room i to the corridor
+        return room_visit(i)[2:]
+
+    def enter(i: int) -> list[tuple[float, float]]:  # from the corridor to the same spot
+        return room_visit(i)[:2]
+
+    def crossing(k: int, x_from: float) -> list[tuple[float, float]]:
+        """Into the open area through the opening nearest `x_from`, along a lane to the
+        farthest opening, back into the corridor."""
+        near = min(openings_x, key=lambda x: abs(x - x_from))
+        far = max(openings_x, key=lambda x: abs(x - near))
+        lane = lanes_y[k % 2]
+        return [(near, yc), (near, lane), (far, lane), (far, yc)]
+
+    tours = {}
+    for k in range(PAPER_OFFICE_TOURS):
+        if k < 8:  # a start inside a room: rooms 0, 3, 6, 1, 4, 7, 2, 5
+            start = (3 * k) % n_rooms
+            other = (start + 4) % n_rooms
+            tour = [*leave(start), *room_visit(other), *crossing(k, room_visit(other)[0][0]),
+                    *enter(start)]
+        elif k < 10:  # a start in the corridor
+            x_start = openings_x[0] + (k - 7) * 0.3 * (openings_x[-1] - openings_x[0])
+            other = (4 * k) % n_rooms
+            tour = [(x_start, yc), *room_visit(other), *crossing(k, room_visit(other)[0][0])]
+        else:  # a start in the open area, between the ramps
+            mid_x = openings_x[len(openings_x) // 2]
+            tour = [(mid_x, lanes_y[1]), (openings_x[0], lanes_y[1]), (openings_x[0], yc),
+                    *room_visit(n_rooms // 2), (openings_x[-1], yc),
+                    (openings_x[-1], lanes_y[1])]
+        tours[f"paper-office-{k + 1}"] = np.array(tour)
+    return tours
 
 
 def building(seed: int = 0, n_floors: int = 3, floor_height_m: float = 3.5) -> World:
