@@ -43,9 +43,10 @@ class InitConfig(Section):
                             "samples all free space")
     default_band_m: list[float] = Field([0.2, 2.5], description="band when auto finds no floor")
     covered: bool | str = Field(
-        "auto", description="keep only cells with a surface somewhere above them (inside a "
-                            "building, not on its roof or around it); auto: when at least "
-                            "covered_share of the candidates are covered (indoor maps)")
+        "auto", description="drop the cells under open sky (observed free up to the map's "
+                            "top: on a building's roof or around it; a ceiling never seen "
+                            "keeps its cells); auto: when at least covered_share of the "
+                            "candidates have a surface above them (indoor maps)")
     covered_share: float = Field(0.3, ge=0.0, le=1.0)
     auto_band_m: float = Field(0.2, gt=0.0, description="half-width of the auto band")
     cell_m: float = Field(0.2, gt=0.0, description="resolution of the free-space candidates "
@@ -171,7 +172,8 @@ def _chunk_candidates(cells: np.ndarray, states: np.ndarray, dims: np.ndarray,
                       band: tuple[float, float] | None, cell_m: float, truncation_m: float
                       ) -> tuple[np.ndarray, np.ndarray]:
     """Keys of the free cells of whole columns in the height band (all of them without a
-    band), and whether each is covered (a surface somewhere above it in its column).
+    band), whether each is covered (a surface somewhere above it in its column) and whether
+    it is under open sky (every cell above it in its column observed free, to the map's top).
 
     A cell z above an occupied cell z0 is (z - z0 - 0.5) * cell + truncation high: it is in
     the band when some occupied cell of its column lies at z0 in [first, last] below it (any
@@ -182,6 +184,7 @@ def _chunk_candidates(cells: np.ndarray, states: np.ndarray, dims: np.ndarray,
     keys = column + cells[:, 2]
     occupied = np.sort(keys[states == OCCUPIED_CELL])
     free = states == FREE_CELL
+    free_keys = np.sort(keys[free])
     column, z = column[free], cells[free, 2]
     ok = np.ones(len(z), bool)
     if band is not None:
@@ -190,8 +193,10 @@ def _chunk_candidates(cells: np.ndarray, states: np.ndarray, dims: np.ndarray,
         last = np.clip(np.floor(z - 0.5 - (lo - truncation_m) / cell_m).astype(np.int64), -1,
                        nz - 1)
         ok = _count_in(occupied, column + first, column + np.maximum(last + 1, first)) > 0
-    covered = _count_in(occupied, column[ok] + z[ok] + 1, column[ok] + nz) > 0
-    return keys[free][ok], covered
+    above = column[ok] + z[ok] + 1, column[ok] + nz
+    covered = _count_in(occupied, *above) > 0
+    open_sky = _count_in(free_keys, *above) == nz - 1 - z[ok]
+    return keys[free][ok], covered, open_sky
 
 
 def _height_band(cfg: InitConfig) -> tuple[float, float] | None:
@@ -206,15 +211,18 @@ def _height_band(cfg: InitConfig) -> tuple[float, float] | None:
     return float(lo), float(hi)
 
 
-def _keep_covered(keys: np.ndarray, covered: np.ndarray, cfg: InitConfig) -> np.ndarray:
-    """Candidates under a surface (a ceiling, a roof, a canopy), when asked or when they are
-    a sizeable share (an indoor map: mesh-built maps also mark the space above the roof and
-    around the walls free, which would take half the particles)."""
+def _keep_covered(keys: np.ndarray, covered: np.ndarray, open_sky: np.ndarray,
+                  cfg: InitConfig) -> np.ndarray:
+    """Without the candidates under open sky, when asked or when the covered ones (under a
+    ceiling, a roof, a canopy) are a sizeable share (an indoor map: mesh-built maps also
+    mark the space above the roof and around the walls free, which would take half the
+    particles). A ceiling the sensor never saw (a room's, from a lidar whose beams rise 15°:
+    a map built from a log) leaves unknown space above its cells, not open sky: they stay."""
     if cfg.covered is False or cfg.covered == "false":
         return keys
     if cfg.covered == "auto" and covered.sum() < cfg.covered_share * max(len(keys), 1):
         return keys
-    return keys[covered]
+    return keys[~open_sky]
 
 
 def free_cells(tsdf, cfg: InitConfig) -> FreeCells:
@@ -230,12 +238,13 @@ def free_cells(tsdf, cfg: InitConfig) -> FreeCells:
     cell = tsdf.voxel_size_m * factor
     dims = np.asarray(tsdf.coarse_dims, np.int64) * (8 // factor)
     columns = _Columns.of(tsdf, factor, free)
-    keys, covered = [np.zeros(0, np.int64)], [np.zeros(0, bool)]
+    keys, covered, open_sky = [np.zeros(0, np.int64)], [np.zeros(0, bool)], [np.zeros(0, bool)]
     for part in columns.chunks():
-        k, c = _chunk_candidates(*columns.cells(part), dims, band, cell, tsdf.truncation_m)
+        k, c, o = _chunk_candidates(*columns.cells(part), dims, band, cell, tsdf.truncation_m)
         keys.append(k)
         covered.append(c)
-    keys = np.sort(_keep_covered(np.concatenate(keys), np.concatenate(covered), cfg))
+        open_sky.append(o)
+    keys = np.sort(_keep_covered(*map(np.concatenate, (keys, covered, open_sky)), cfg))
     if len(keys) == 0:
         where = f" within the height band {list(band)} m above a surface" if band else ""
         raise MapError(f"the map has no observed free space{where} to place particles in; "

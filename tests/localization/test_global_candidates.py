@@ -44,10 +44,13 @@ def dense_candidates(tsdf, cfg) -> np.ndarray:
         last = np.clip(np.floor(z - 0.5 - (lo - trunc) / cell).astype(np.int64), -1, nz - 1)
         ok &= (counts[:, :, np.maximum(last + 1, first)] - counts[:, :, first]) > 0
     if cfg.covered is not False:
-        above = np.flip(np.cumsum(np.flip(occupied, axis=2), axis=2), axis=2) > 0
-        covered = ok & np.concatenate([above[:, :, 1:], np.zeros_like(above[:, :, :1])], 2)
+        def anything_above(mask):
+            above = np.flip(np.cumsum(np.flip(mask, axis=2), axis=2), axis=2) > 0
+            return np.concatenate([above[:, :, 1:], np.zeros_like(above[:, :, :1])], 2)
+
+        covered = ok & anything_above(occupied)
         if not (cfg.covered == "auto" and covered.sum() < cfg.covered_share * max(ok.sum(), 1)):
-            ok = covered
+            ok &= anything_above(grid != FREE)  # not under open sky
     return (np.asarray(tsdf.origin_m) + np.argwhere(ok) * cell).astype(np.float32)
 
 
@@ -102,11 +105,13 @@ def test_height_band_counts_every_surface_below():
 
     rng = np.random.default_rng(0)
     dims = np.array([3, 4, 30])
-    states = np.where(rng.random(dims) < 0.08, OCCUPIED, FREE).astype(np.uint8)
+    draw = rng.random(dims)
+    states = np.where(draw < 0.08, OCCUPIED, np.where(draw < 0.1, UNKNOWN, FREE)).astype(np.uint8)
     cells = np.argwhere(np.ones(dims, bool))
     cell, trunc, lo, hi = 0.2, 0.15, 0.9, 1.5
-    keys, covered = _chunk_candidates(cells, states.reshape(-1), dims, (lo, hi), cell, trunc)
-    ref, ref_covered = [], []
+    keys, covered, open_sky = _chunk_candidates(cells, states.reshape(-1), dims, (lo, hi),
+                                                cell, trunc)
+    ref, ref_covered, ref_open = [], [], []
     for x, y, z in np.ndindex(*dims):
         if states[x, y, z] != FREE:
             continue
@@ -114,9 +119,37 @@ def test_height_band_counts_every_surface_below():
         if any(lo <= h <= hi for h in heights):
             ref.append((x * dims[1] + y) * dims[2] + z)
             ref_covered.append(bool((states[x, y, z + 1:] == OCCUPIED).any()))
+            ref_open.append(bool((states[x, y, z + 1:] == FREE).all()))
     np.testing.assert_array_equal(keys, ref)
     np.testing.assert_array_equal(covered, ref_covered)
+    np.testing.assert_array_equal(open_sky, ref_open)
     assert 0 < len(ref) < (states == FREE).sum() and 0 < sum(ref_covered) < len(ref)
+    assert 0 < sum(ref_open) < len(ref) - sum(ref_covered)  # also unknown above, no surface
+
+
+def test_a_ceiling_never_seen_keeps_its_room_and_open_sky_goes():
+    """Three columns of 0.2 m cells: a room whose ceiling the map saw, a room whose ceiling
+    it never saw (a lidar inside it: unknown above 2.8 m) and a roof with free space above
+    it to the map's top (a mesh-built map). Only the roof's cells are dropped."""
+    from mcl3d.localization.initialization import InitConfig, _chunk_candidates, _keep_covered
+
+    nz = 30
+    seen = np.full(nz, FREE, np.uint8)
+    seen[[0, 15]] = OCCUPIED  # floor and ceiling (3 m)
+    unseen = seen.copy()
+    unseen[15:] = UNKNOWN
+    roof = np.full(nz, FREE, np.uint8)
+    roof[:16] = UNKNOWN  # inside the building below, as seen from above
+    roof[16] = OCCUPIED
+    states = np.concatenate([seen, unseen, roof])
+    cells = np.stack([np.repeat([0, 1, 2], nz), np.zeros(3 * nz, int), np.tile(np.arange(nz), 3)],
+                     axis=1)
+    keys, covered, open_sky = _chunk_candidates(cells, states, np.array([3, 1, nz]), (0.2, 2.5),
+                                                0.2, 0.15)
+    kept = _keep_covered(keys, covered, open_sky, InitConfig(covered=True))
+    column = kept // nz
+    assert set(column) == {0, 1} and (column == 0).sum() == (column == 1).sum() > 5
+    assert (keys // nz == 2).sum() > 5 and covered[keys // nz == 1].sum() == 0
 
 
 def test_a_drone_over_a_crate_stays_in_the_band():
@@ -128,7 +161,8 @@ def test_a_drone_over_a_crate_stays_in_the_band():
     states = np.full(30, FREE, np.uint8)
     states[[0, 8]] = OCCUPIED  # floor cell and crate-top cell
     cells = np.stack([np.zeros(30, int), np.zeros(30, int), np.arange(30)], axis=1)
-    keys, _ = _chunk_candidates(cells, states, np.array([1, 1, 30]), (3.2, 3.6), cell, trunc)
+    keys, _, _ = _chunk_candidates(cells, states, np.array([1, 1, 30]), (3.2, 3.6), cell,
+                                   trunc)
     above_floor = (np.arange(30) - 0.5) * cell + trunc
     above_crate = above_floor - 8 * cell
     want = (((above_floor >= 3.2) & (above_floor <= 3.6))
@@ -149,13 +183,15 @@ def far_apart(maps):
 
 def test_candidates_of_rooms_a_kilometre_apart(far_apart, ti_runtime):
     """The candidates of the joint map are those of each room, the far one's moved by its
-    offset; they never touch the kilometre between them."""
+    offset; they never touch the kilometre between them. (Open sky is free space up to the
+    map's top, which the joint map raises by 100 m: the rooms' roofs are compared with
+    `covered` off.)"""
     from mcl3d.localization.initialization import InitConfig, free_cells
 
     room, hall, joint = far_apart
     assert joint.geometry.n_cells > 1_500_000_000
     shift = np.asarray(FAR_BLOCKS) * joint.geometry.block_size_m
-    for overrides in ({"covered": True}, {"height_band_m": None, "covered": False}):
+    for overrides in ({"covered": False}, {"height_band_m": None, "covered": False}):
         cfg = InitConfig(**overrides)
         got = free_cells(joint, cfg)
         want = np.concatenate([free_cells(hall, cfg).corners_m,
