@@ -8,6 +8,7 @@ import pytest
 from mcl3d.core import geometry
 
 localize_world = pytest.importorskip("support.localize_world")
+LIDAR_Z_M = localize_world.LIDAR_Z_M
 
 UNKNOWN, FREE, OCCUPIED = 0, 1, 2
 FAR_BLOCKS = (2500, 2500, 250)  # the room's offset in blocks: 1 km x 1 km x 100 m at 10 cm
@@ -251,3 +252,26 @@ def test_global_start_in_rooms_a_kilometre_apart(far_apart, ti_runtime):
     assert r.state == "converged" and err < 0.2, (r.state, err)
     field = loc.weigher.coarse_summary
     assert field["layout"] == "tiles" and field["index_bytes"] + field["brick_bytes"] < 64 << 20
+
+
+def test_a_room_fused_from_its_scans_keeps_candidates_under_its_unseen_ceiling(maps, ti_runtime):
+    """The fused room's lidar (0.8 m up, beams within 15 deg) sees the 3 m ceiling only near
+    the far walls: most of its candidates have no surface observed above them, and keeping
+    only those with one would drop them. Unknown above is no open sky: all of them stay."""
+    from mcl3d.localization import initialization
+    from mcl3d.localization.initialization import InitConfig, free_cells
+
+    fused = maps["fused"]
+    band = (LIDAR_Z_M - 0.3, LIDAR_Z_M + 0.3)
+    kept = free_cells(fused, InitConfig(covered=True, height_band_m=list(band)))
+    every = free_cells(fused, InitConfig(covered=False, height_band_m=list(band)))
+    np.testing.assert_array_equal(kept.corners_m, every.corners_m)
+    cells, values = fused.coarse_cells()
+    columns = initialization._Columns.of(fused, 2, cells[values == initialization.FREE_BLOCK])
+    dims = np.asarray(fused.coarse_dims, np.int64) * 4
+    flags = [initialization._chunk_candidates(*columns.cells(part), dims, band, 0.2,
+                                              fused.truncation_m)[1:]
+             for part in columns.chunks()]
+    covered, open_sky = (np.concatenate(f) for f in zip(*flags, strict=True))
+    assert len(covered) == len(every.corners_m) > 50
+    assert covered.mean() < 0.5 and not open_sky.any()
