@@ -134,11 +134,13 @@ def simulate(
     trajectory: Annotated[str, typer.Option(
         "--trajectory", help="ground, loop, handheld, drone (forest, arena), elevator "
                              "(building), kidnap, survey (office: every room, once round in "
-                             "~325 s), paper-forest (forest) or paper-elevator (building).")
+                             "~325 s), paper-office-1..11 (office: the MCL paper's tours from "
+                             "look-alike rooms), paper-forest (forest) or paper-elevator "
+                             "(building).")
     ] = "ground",
     duration: Annotated[float | None, typer.Option(
         "--duration", help="Seconds to simulate (default: the route's own length for "
-                           "paper-forest and paper-elevator, else 10).",
+                           "the paper-* routes, else 10).",
         show_default=False)] = None,
     seed: Annotated[int, typer.Option("--seed", help="Seed of the world, the path and every "
                                       "noise: same seed, same bytes.")] = 0,
