@@ -20,6 +20,8 @@ noise (each has its own log and map); `--seeds` are the filter's seeds on each l
     python bench/study_ambiguity.py --worlds warehouse office arena --seeds 1 2 3 4 5
     python bench/study_ambiguity.py --quick   # office and arena, seed 1, the first 20 s
     python bench/study_ambiguity.py --report bench/results/study_ambiguity.json
+    python bench/study_ambiguity.py --worlds office --trajectory 'paper-office-{log_seed}' \
+        --log-seeds 1 2 3 4 5 6 7 8 --seeds 1 --duration 90   # starts inside the rooms
 """
 
 from __future__ import annotations
@@ -46,10 +48,20 @@ def mcl3d(*args) -> None:
                    stdout=subprocess.DEVNULL)
 
 
-def make_data(work: Path, world: str, log_seed: int) -> tuple[Path, Path, Path]:
-    """The log and its map from the world mesh (cached)."""
+def route(world: str, log_seed: int, args) -> tuple[str, float, str]:
+    """The log's trajectory, its duration (s) and its name: the world's own, or --trajectory
+    with {log_seed} filled in (and --duration)."""
     trajectory, duration_s, _ = WORLDS[world]
-    log = work / f"{world}_{log_seed}.mcap"
+    if args.trajectory is None:
+        return trajectory, duration_s, f"{world}_{log_seed}"
+    trajectory = args.trajectory.format(log_seed=log_seed)
+    return trajectory, args.duration or duration_s, f"{world}_{log_seed}_{trajectory}"
+
+
+def make_data(work: Path, world: str, log_seed: int, args) -> tuple[Path, Path, Path]:
+    """The log and its map from the world mesh (cached)."""
+    trajectory, duration_s, name = route(world, log_seed, args)
+    log = work / f"{name}.mcap"
     mesh = work / f"{world}_{log_seed}.ply"
     tsdf = work / f"{world}_{log_seed}.tsdf"
     if not log.exists():
@@ -57,7 +69,7 @@ def make_data(work: Path, world: str, log_seed: int) -> tuple[Path, Path, Path]:
               duration_s, "--seed", log_seed, "--export-mesh", mesh, "--force")
     if not tsdf.exists():
         mcl3d("build-map", mesh, "-o", tsdf, "--backend", "cpu", "--force")
-    return log, tsdf, work / f"{world}_{log_seed}_gt.tum"
+    return log, tsdf, work / f"{name}_gt.tum"
 
 
 def scan_errors(out: Path, gt_tum: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -98,8 +110,9 @@ def judge(t_s: np.ndarray, d: np.ndarray, a: np.ndarray, states: list[str],
 def run_one(work: Path, world: str, log_seed: int, seed: int, args) -> dict:
     from mcl3d.localization.pipeline import LocalizeConfig, LocalizeRequest, run
 
-    log, tsdf, gt_tum = make_data(work, world, log_seed)
-    out = work / f"run_{world}_{log_seed}_{seed}_{args.particles}"
+    log, tsdf, gt_tum = make_data(work, world, log_seed, args)
+    trajectory, _, name = route(world, log_seed, args)
+    out = work / f"run_{name}_{seed}_{args.particles}"
     cfg = LocalizeConfig.model_validate({"max_scans": args.max_scans or None, "localizer": {
         "particles": args.particles, "seed": seed,
         "sensor": {"max_range_m": args.range}}})
@@ -108,11 +121,12 @@ def run_one(work: Path, world: str, log_seed: int, seed: int, args) -> dict:
     wall_s = time.perf_counter() - t0
     t_s, d, a = scan_errors(out, gt_tum)
     states = [str(r.state) for r in res.results]
-    return {"world": world, "log_seed": log_seed, "seed": seed,
+    feature_s = WORLDS[world][2] if args.trajectory is None else None
+    return {"world": world, "trajectory": trajectory, "log_seed": log_seed, "seed": seed,
             "particles": args.particles, "range_m": args.range, "wall_s": round(wall_s, 1),
             "ms_per_update": round(res.summary.ms_per_update["total"], 1),
             "claim_checks": res.claim_checks,
-            **judge(t_s, d, a, states, WORLDS[world][2])}
+            **judge(t_s, d, a, states, feature_s)}
 
 
 def report(runs: list[dict]) -> None:
@@ -134,6 +148,10 @@ def main() -> None:
     ap.add_argument("--seeds", nargs="+", type=int, default=[1, 2, 3, 4, 5])
     ap.add_argument("--particles", type=int, default=100_000)
     ap.add_argument("--range", type=float, default=6.0, help="range gate (m)")
+    ap.add_argument("--trajectory", help="the logs' route instead of the world's own; "
+                    "{log_seed} is replaced by the log seed, e.g. paper-office-{log_seed}: the "
+                    "office tours that start inside look-alike rooms (log seeds 1-8)")
+    ap.add_argument("--duration", type=float, help="seconds of each --trajectory log")
     ap.add_argument("--max-scans", type=int, default=0, help="stop each run after this "
                     "many scans (0: the whole log)")
     ap.add_argument("--quick", action="store_true",
