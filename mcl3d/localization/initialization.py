@@ -170,7 +170,7 @@ def _count_in(sorted_keys: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.nda
 
 def _chunk_candidates(cells: np.ndarray, states: np.ndarray, dims: np.ndarray,
                       band: tuple[float, float] | None, cell_m: float, truncation_m: float
-                      ) -> tuple[np.ndarray, np.ndarray]:
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Keys of the free cells of whole columns in the height band (all of them without a
     band), whether each is covered (a surface somewhere above it in its column) and whether
     it is under open sky (every cell above it in its column observed free, to the map's top).

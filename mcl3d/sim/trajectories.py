@@ -36,13 +36,13 @@ VALID = {
     "warehouse": ("ground", "loop", "handheld", "kidnap"),
 }
 GRAVITY_MPS2 = 9.80665
+REST_S = 1.5  # the rig stands still this long at the start and end of each path
 
 
 def listed(kinds: tuple[str, ...]) -> str:
     """Trajectory names for a message, the paper's office tours as one range."""
     short = [k for k in kinds if k not in PAPER_OFFICE[1:]]
     return ", ".join(f"{k}..{len(PAPER_OFFICE)}" if k == PAPER_OFFICE[0] else k for k in short)
-REST_S = 1.5  # the rig stands still this long at the start and end of each path
 
 
 @dataclass

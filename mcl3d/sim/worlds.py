@@ -196,7 +196,7 @@ def office(seed: int = 0, n_rooms: int = 8, room_width_m: float = 6.0,
     kidnap = [(2.0, yc), *room_visit(0), *room_visit(1), *room_visit(2), (20.5, yc)]
     survey = [(2.0, yc), *[p for i in range(n_rooms) for p in room_visit(i)], *loop[15:]]
     tours = _office_tours(room_visit, n_rooms, yc, [0.5 * (a + b) for a, b in openings],
-                          lanes_y=(14.5, 17.0))
+                          lanes_y=(14.5, 17.0))  # over both ramps (y 13-16); by the pillars
     return World(
         name="office", seed=seed, static=b.build(), ground=g.build(),
         routes={"ground": np.array(ground), "loop": np.array(loop), "kidnap": np.array(kidnap),
