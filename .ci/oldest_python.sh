@@ -13,8 +13,10 @@ if [ -z "$python" ]; then
   echo "[ci] no Python $oldest on this machine: import check on the oldest claimed version skipped"
   exit 0
 fi
-venv=$(mktemp -d)/venv
-trap "rm -rf '$PWD/build'" EXIT  # what pip leaves in the tree when it builds the wheel
+scratch=$(mktemp -d)
+venv=$scratch/venv
+# what pip leaves in the tree when it builds the wheel, and the venv (1.7 GB a run)
+trap "rm -rf '$PWD/build' '$scratch'" EXIT
 "$python" -m venv "$venv"
 "$venv/bin/python" -m pip install -q --upgrade pip
 "$venv/bin/python" -m pip install -q .
