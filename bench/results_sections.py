@@ -164,7 +164,8 @@ until then the mapping log was simulated with another seed, so its map held anot
 furniture (the office's odd boxes in other rooms, the arena's stage and crate elsewhere),
 and the convergence check below did not exist. The office's default rows were measured again
 after a third (commit 2b30cec: candidates under the rooms' unseen ceilings, see "The paper's
-11 office trajectories" below; 2-core cpu, load 2–3, `bench/results/study_global_s25/`).
+11 office trajectories" below; 2-core cpu, load 2–3, `bench/results/study_global_s25/`), and
+so was the arena's log-map row.
 
 | world, lidar, odometry | map | particles | default | paper | the paper needed |
 | --- | --- | --- | --- | --- | --- |
@@ -176,7 +177,7 @@ after a third (commit 2b30cec: candidates under the rooms' unseen ceilings, see 
 | arena, OS0-64, truth + σ 0.1 | mesh | 100,000 | 5 of 5 | 0 of 5: 4 of them ~180° off | 100,000 |
 | arena, OS0-64, truth + σ 0.1 | mesh | 300,000 | | 0 of 5: 4 falsely `converged`, 22–27 m off (2026-11-27) | |
 | arena, OS0-64, truth + σ 0.2 | mesh | 100,000 | 5 of 5 | | |
-| arena, OS0-64, truth + σ 0.1 | log | 100,000 | 5 of 5, 0 false (seed 2 on the truth but `ambiguous` to scan 200) | 0 of 5: 3 of them 18–26 m off; seeds 3 and 5 end within 0.12 m, not all their last 10 scans within tolerance | 100,000 |
+| arena, OS0-64, truth + σ 0.1 | log | 100,000 | 5 of 5, 0 false (after 2b30cec: seeds 3 and 5 on the truth but `ambiguous` to scan 200; before it seed 2) | 0 of 5: 3 of them 18–26 m off; seeds 3 and 5 end within 0.12 m, not all their last 10 scans within tolerance | 100,000 |
 
 The default settings find the truth with fewer particles than the paper needed (30,000 in
 the arena at σ 0.1), on maps from a log as on the mesh; the arena's noise sweep (σ 0, 0.1,
