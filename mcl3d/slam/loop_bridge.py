@@ -65,21 +65,21 @@ def _two_ended_chain(T_start: np.ndarray, T_end: np.ndarray, motion: list[np.nda
                      step_cov: np.ndarray) -> np.ndarray:
     """Poses from T_start by `motion[j] exp(δ_j)`, the δ of least Σ δᵀ W_j⁻¹ δ ending on
     T_end (W_j = step_cov[j], rotation first)."""
+    def walk(delta: np.ndarray) -> list[np.ndarray]:
+        poses = [T_start]
+        for step, d in zip(motion, delta, strict=True):
+            poses.append(poses[-1] @ step @ se3_exp(d))
+        return poses
+
     n = len(motion)
-    W = step_cov
     delta = np.zeros((n, 6))
     for _ in range(BRIDGE_ITERATIONS):
-        poses = [T_start]
-        for j in range(n):
-            poses.append(poses[-1] @ motion[j] @ se3_exp(delta[j]))
+        poses = walk(delta)
         residual = se3_log(se3_inverse(poses[-1]) @ T_end)
         # a step's δ_j moves the end by Ad((T_{j+1}⁻¹ T_end)⁻¹) δ_j, in the end's frame
         J = np.stack([se3_adjoint(se3_inverse(se3_inverse(poses[j + 1]) @ poses[-1]))
                       for j in range(n)])
-        S = np.einsum("jab,jbc,jdc->ad", J, W, J)
+        S = np.einsum("jab,jbc,jdc->ad", J, step_cov, J)
         lam = np.linalg.solve(S, residual)
-        delta += np.einsum("jab,jcb,c->ja", W, J, lam)
-    poses = [T_start]
-    for j in range(n):
-        poses.append(poses[-1] @ motion[j] @ se3_exp(delta[j]))
-    return np.stack(poses)
+        delta += np.einsum("jab,jcb,c->ja", step_cov, J, lam)
+    return np.stack(walk(delta))
