@@ -211,7 +211,7 @@ def _height_band(cfg: InitConfig) -> tuple[float, float] | None:
     return float(lo), float(hi)
 
 
-def _keep_covered(keys: np.ndarray, covered: np.ndarray, open_sky: np.ndarray,
+def _without_open_sky(keys: np.ndarray, covered: np.ndarray, open_sky: np.ndarray,
                   cfg: InitConfig) -> np.ndarray:
     """Without the candidates under open sky, when asked or when the covered ones (under a
     ceiling, a roof, a canopy) are a sizeable share (an indoor map: mesh-built maps also
@@ -244,7 +244,7 @@ def free_cells(tsdf, cfg: InitConfig) -> FreeCells:
         keys.append(k)
         covered.append(c)
         open_sky.append(o)
-    keys = np.sort(_keep_covered(*map(np.concatenate, (keys, covered, open_sky)), cfg))
+    keys = np.sort(_without_open_sky(*map(np.concatenate, (keys, covered, open_sky)), cfg))
     if len(keys) == 0:
         where = f" within the height band {list(band)} m above a surface" if band else ""
         raise MapError(f"the map has no observed free space{where} to place particles in; "

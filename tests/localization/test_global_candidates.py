@@ -132,7 +132,7 @@ def test_a_ceiling_never_seen_keeps_its_room_and_open_sky_goes():
     """Three columns of 0.2 m cells: a room whose ceiling the map saw, a room whose ceiling
     it never saw (a lidar inside it: unknown above 2.8 m) and a roof with free space above
     it to the map's top (a mesh-built map). Only the roof's cells are dropped."""
-    from mcl3d.localization.initialization import InitConfig, _chunk_candidates, _keep_covered
+    from mcl3d.localization.initialization import InitConfig, _chunk_candidates, _without_open_sky
 
     nz = 30
     seen = np.full(nz, FREE, np.uint8)
@@ -147,7 +147,7 @@ def test_a_ceiling_never_seen_keeps_its_room_and_open_sky_goes():
                      axis=1)
     keys, covered, open_sky = _chunk_candidates(cells, states, np.array([3, 1, nz]), (0.2, 2.5),
                                                 0.2, 0.15)
-    kept = _keep_covered(keys, covered, open_sky, InitConfig(covered=True))
+    kept = _without_open_sky(keys, covered, open_sky, InitConfig(covered=True))
     column = kept // nz
     assert set(column) == {0, 1} and (column == 0).sum() == (column == 1).sum() > 5
     assert (keys // nz == 2).sum() > 5 and covered[keys // nz == 1].sum() == 0
