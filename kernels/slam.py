@@ -81,22 +81,30 @@ def select_neighbours(n: ti.i32, num_kf: ti.i32, kf: ti.types.ndarray(ndim=3),
                       kf_travel: ti.types.ndarray(ndim=1), kf_seq: ti.types.ndarray(ndim=1),
                       first_recent_seq: ti.i32, travel_now_m: ti.f32,
                       loop_min_travel_m: ti.f32, min_facing_cos: ti.f32, up: vec3,
-                      max_dz_m: ti.f32, nb: ti.template(), nb_loop: ti.template()) -> ti.i32:
+                      max_dz_m: ti.f32, facing_neighbours: ti.i32, nb: ti.template(),
+                      nb_loop: ti.template()) -> ti.i32:
     """The 3 keyframes nearest to each particle's current position in its own map (ties go
     to the lower slot), leaving out keyframes more than `max_dz_m` above or below it
-    (another floor); a neighbour is a loop when it is not one of the newest keyframes (its
-    number `kf_seq` is below `first_recent_seq`), the odometry travelled more than
-    `loop_min_travel_m` since it, and its lidar faces within acos(min_facing_cos) of the
-    particle's (+x axes). Returns how many particles see a loop."""
+    (another floor) and, with `facing_neighbours`, keyframes that are not among the newest
+    and face away (they cannot be loops); a neighbour is a loop when it is not one of the
+    newest keyframes (its number `kf_seq` is below `first_recent_seq`), the odometry
+    travelled more than `loop_min_travel_m` since it, and its lidar faces within
+    acos(min_facing_cos) of the particle's (+x axes). Returns how many particles see a
+    loop."""
     looping = 0
     for i in range(n):
         p = t_cur[i]
+        forward = quat_rotate(q_cur[i], vec3(1.0, 0.0, 0.0))
         best = vec3(3.0e38)
         idx = ti.Vector([NO_KEYFRAME, NO_KEYFRAME, NO_KEYFRAME])
         for k in range(num_kf):
             d = vec3(kf[i, k, 0], kf[i, k, 1], kf[i, k, 2]) - p
             d2 = d.dot(d)
-            if d2 < best[2] and ti.abs(d.dot(up)) <= max_dz_m:
+            eligible = d2 < best[2] and ti.abs(d.dot(up)) <= max_dz_m
+            if eligible and facing_neighbours != 0 and kf_seq[k] < first_recent_seq:
+                q_kf, _ = load_keyframe(kf, i, k)
+                eligible = quat_rotate(q_kf, vec3(1.0, 0.0, 0.0)).dot(forward) >= min_facing_cos
+            if eligible:
                 if d2 < best[1]:
                     best[2], idx[2] = best[1], idx[1]
                     if d2 < best[0]:
@@ -107,7 +115,6 @@ def select_neighbours(n: ti.i32, num_kf: ti.i32, kf: ti.types.ndarray(ndim=3),
                 else:
                     best[2], idx[2] = d2, k
         any_loop = 0
-        forward = quat_rotate(q_cur[i], vec3(1.0, 0.0, 0.0))
         for j in ti.static(range(NEIGHBOURS)):
             k = idx[j]
             nb[i, j] = k

@@ -43,22 +43,30 @@ def bridge_between_anchors(T_world_keyframe: np.ndarray, T_motion_keyframe: np.n
     random walk (m², along `up`, default +z)."""
     T_out = np.array(T_world_keyframe, dtype=np.float64)
     K = len(T_out)
-    up = np.array([0.0, 0.0, 1.0]) if up is None else np.asarray(up, np.float64)
     ends = (np.arange(K) == 0) | (np.arange(K) == K - 1)
     anchors = np.flatnonzero(anchored | ends)
     motion = [se3_inverse(T_motion_keyframe[k]) @ T_motion_keyframe[k + 1] for k in range(K - 1)]
-    grown = np.diff(np.asarray(drift_variance, np.float64), axis=0)
-    step_cov = np.zeros((K - 1, 6, 6))
-    step_cov[:, :3, :3] = np.eye(3) * grown[:, 0, None, None] / 3.0
-    step_cov[:, 3:, 3:] = np.eye(3) * grown[:, 1, None, None] / 3.0
-    up_local = np.einsum("kji,j->ki", T_motion_keyframe[1:, :3, :3], up)  # in each step's frame
-    step_cov[:, 3:, 3:] += grown[:, 2, None, None] * np.einsum("ki,kj->kij", up_local, up_local)
-    step_cov += np.eye(6) * MIN_STEP_VARIANCE
+    step_cov = step_covariances(T_motion_keyframe, drift_variance, up)
     for a, b in pairwise(anchors):
         if b - a > 1:
             T_out[a + 1:b] = _two_ended_chain(T_out[a], T_out[b], motion[a:b],
                                               step_cov[a:b])[1:-1]
     return T_out
+
+
+def step_covariances(T_motion_keyframe: np.ndarray, drift_variance: np.ndarray,
+                     up: np.ndarray | None = None) -> np.ndarray:
+    """(K - 1, 6, 6) covariance of the odometry's step from each keyframe to the next (rotation
+    first, in the later keyframe's frame): the growth of `drift_variance` (see
+    `bridge_between_anchors`) spread evenly over the axes, the elevator's along `up`."""
+    up = np.array([0.0, 0.0, 1.0]) if up is None else np.asarray(up, np.float64)
+    grown = np.diff(np.asarray(drift_variance, np.float64), axis=0)
+    step_cov = np.zeros((len(grown), 6, 6))
+    step_cov[:, :3, :3] = np.eye(3) * grown[:, 0, None, None] / 3.0
+    step_cov[:, 3:, 3:] = np.eye(3) * grown[:, 1, None, None] / 3.0
+    up_local = np.einsum("kji,j->ki", T_motion_keyframe[1:, :3, :3], up)  # in each step's frame
+    step_cov[:, 3:, 3:] += grown[:, 2, None, None] * np.einsum("ki,kj->kij", up_local, up_local)
+    return step_cov + np.eye(6) * MIN_STEP_VARIANCE
 
 
 def _two_ended_chain(T_start: np.ndarray, T_end: np.ndarray, motion: list[np.ndarray],

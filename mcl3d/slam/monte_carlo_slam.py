@@ -67,7 +67,14 @@ from mcl3d.slam.floor_guard import FloorGuard, stratified_prune_plan
 from mcl3d.slam.frame_store import SlamFrame, SlamFrames
 from mcl3d.slam.free_space import FreeSpace
 from mcl3d.slam.keyframe_store import KeyframeBook, slot_to_reuse
-from mcl3d.slam.loop_bridge import anchored_keyframes, bridge_between_anchors
+from mcl3d.slam.loop_bridge import anchored_keyframes, bridge_between_anchors, step_covariances
+from mcl3d.slam.loop_graph import (
+    LoopEdge,
+    agreeing_edges,
+    register_again,
+    register_loop,
+    solve_pose_graph,
+)
 from mcl3d.slam.slam_config import PredictionNoiseConfig, PruningConfig, SlamConfig
 from mcl3d.slam.slam_particles import DRIFT_SUMS, SlamParticles
 
@@ -226,6 +233,10 @@ class MonteCarloSlam:
         self.vertical_offset = np.zeros(3)  # elevator motion the odometry did not see
         self._ride_variance_m2 = 0.0  # the elevator's vertical random walk, summed
         self._written_keyframes = None  # ((scans, bridged), poses) of the last result asked
+        # (source, target) keyframe numbers of each loop the representative took -> its
+        # registered edge, None when the registration failed (mcl3d/slam/loop_graph.py)
+        self.loop_edges: dict[tuple[int, int], LoopEdge | None] = {}
+        self._loop_range_m: dict[tuple[int, int], float] = {}  # of the scan each was from
 
     # ---- one scan ----
 
@@ -281,6 +292,8 @@ class MonteCarloSlam:
                                             se3(T_rep[:3, :3], post @ positions))
         loop_slots = list(loops.get(int(origin[self._rep]), ()))
         kf_poses = p.keyframe_poses(self._rep)[loop_slots] if loop_slots else []
+        if cfg.trajectory.loop_graph and loop_slots:
+            self._register_loops(loop_slots, kf_poses, T_rep, T_odom, down)
         watch.lap("estimate")
         frame = SlamFrame(stamp_ns, T_rep, odo.T_world_lidar, T_odom, self._rep,
                           float(1.0 / np.sum(post**2)), float(post.max()), hyp, looping,
@@ -340,7 +353,7 @@ class MonteCarloSlam:
             loop = cfg.loop_closure
             facing_rad = np.deg2rad(cfg.front_end.fov_deg / 2) if loop.facing_gate else np.pi
             gate = (self.travel_m, loop.min_travel_m, self._up(), loop.neighbour_max_dz_m,
-                    facing_rad)
+                    facing_rad, loop.facing_gate and loop.facing_neighbours)
             looping = p.select_neighbours(*gate)
             for _ in range(corr.gn_iterations if looping else 0):
                 corrected = p.correct(self.travel_m, self.drift, T_odom[:3, 3], len(src_pts),
@@ -486,6 +499,28 @@ class MonteCarloSlam:
         self.keyframes.retire(int(p.seq[slot]), T_slots[slot])
         return slot
 
+    def _register_loops(self, loop_slots: list[int], T_loop_keyframes: list[np.ndarray],
+                        T_rep: np.ndarray, T_odom: np.ndarray, down: np.ndarray) -> None:
+        """Register the scan (`down`, lidar frame) onto each loop keyframe the representative
+        just took, from its relative pose, as an edge from the newest keyframe (the odometry
+        since it); once per pair, again from a scan much nearer (loop_graph)."""
+        p = self.particles
+        source = len(self.keyframes) - 1
+        source_scan = self.keyframe_frames[source]
+        T_source_scan = np.eye(4) if source_scan == len(self.frames) else \
+            se3_inverse(self.frames.pose("T_motion_lidar", source_scan)) @ T_odom
+        for slot, T_target in zip(loop_slots, T_loop_keyframes, strict=True):
+            pair = (source, int(p.seq[slot]))
+            T_target_scan = se3_inverse(T_target) @ T_rep
+            distance_m = float(np.linalg.norm(T_target_scan[:3, 3]))
+            if pair[1] == source or not register_again(self._loop_range_m.get(pair), distance_m):
+                continue
+            edge = register_loop(*pair, down, self.keyframes.clouds[slot], T_target_scan,
+                                 T_source_scan)
+            if edge is not None or pair not in self.loop_edges:
+                self.loop_edges[pair] = edge
+            self._loop_range_m[pair] = distance_m
+
     def _prune(self, step: int, scored: bool) -> tuple[int, np.ndarray, np.ndarray]:
         """Prune; particles without a neighbour keyframe (unmapped space, another floor) get
         the median likelihood of the scored ones: no evidence for or against them. Returns
@@ -522,20 +557,35 @@ class MonteCarloSlam:
         """(keyframes made, 4, 4): the representative's pose of every keyframe, bridged
         between the keyframes where it took a loop correction when so configured (kept until
         the next scan: the trajectory and the map both ask at the end of a run)."""
-        bridge = self.cfg.trajectory.bridge_between_loops
-        key = (len(self.frames), bridge)
+        written = self.cfg.trajectory
+        key = (len(self.frames), written.bridge_between_loops, written.loop_graph)
         if self._written_keyframes is not None and self._written_keyframes[0] == key:
             return self._written_keyframes[1]
         p = self.particles
         T = self.keyframes.poses_by_number(p.keyframe_poses(self._rep), p.seq)
-        if bridge and len(T):
-            kf_frames = np.asarray(self.keyframe_frames)
+        kf_frames = np.asarray(self.keyframe_frames)
+        drift = np.asarray(self.keyframes.drift_variance)
+        if written.loop_graph and len(T):
+            motion = self.frames.poses("T_motion_lidar")[kf_frames]
+            T = solve_pose_graph(T, motion, step_covariances(motion, drift, self._up()),
+                                 self.map_loop_edges())
+        elif written.bridge_between_loops and len(T):
             loop_scans = np.flatnonzero((self.frames.loop_keyframes >= 0).any(axis=1))
             T = bridge_between_anchors(T, self.frames.poses("T_motion_lidar")[kf_frames],
-                                       np.asarray(self.keyframes.drift_variance),
-                                       anchored_keyframes(loop_scans, kf_frames), self._up())
+                                       drift, anchored_keyframes(loop_scans, kf_frames),
+                                       self._up())
         self._written_keyframes = (key, T)
         return T
+
+    def map_loop_edges(self) -> list[LoopEdge]:
+        """The registered loop edges the representative's own keyframes agree with (the loop
+        graph's; the others were taken by hypotheses that died)."""
+        p = self.particles
+        registered = [e for e in self.loop_edges.values() if e is not None]
+        if not registered:
+            return []
+        return agreeing_edges(self.keyframes.poses_by_number(p.keyframe_poses(self._rep), p.seq),
+                              registered)
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
         """(stamps_ns, poses) of every scan as the representative particle's map places it:

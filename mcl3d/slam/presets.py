@@ -43,6 +43,7 @@ PAPER: dict[str, Any] = {
     "elevator.floor_guard": False,
     # the best particle's own map is the result
     "trajectory.bridge_between_loops": False,
+    "trajectory.loop_graph": False,
 }
 
 PRESETS: dict[str, dict[str, Any]] = {"default": {}, "paper": PAPER}

@@ -66,6 +66,11 @@ class LoopClosureConfig(Section):
     facing_gate: bool = Field(True, description="a loop keyframe must face within "
                               "front_end.fov_deg / 2 of the particle (not in the paper; see "
                               "docs/slam.md)")
+    facing_neighbours: bool = Field(True, description="with the facing gate, an old "
+                                    "keyframe facing away is not a neighbour either, so the "
+                                    "nearest keyframes that can close a loop are chosen (a "
+                                    "lane driven against its first pass finds the parallel "
+                                    "lanes driven its way; docs/slam.md)")
 
 
 class CorrectionConfig(Section):
@@ -201,6 +206,11 @@ class TrajectoryConfig(Section):
                                        "(the most likely path of its prediction noise given "
                                        "the ends; mcl3d/slam/loop_bridge.py); off: the "
                                        "particle's own poses, as in the paper")
+    loop_graph: bool = Field(True, description="the keyframes solved as a pose graph instead: "
+                             "odometry edges in the same drift covariance, and each loop the "
+                             "representative took registered to convergence from the "
+                             "filter's estimate (mcl3d/slam/loop_graph.py); takes precedence "
+                             "over bridge_between_loops")
 
 
 class SlamConfig(Section):

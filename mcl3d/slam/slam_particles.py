@@ -133,16 +133,19 @@ class SlamParticles:
 
     def select_neighbours(self, travel_m: float, loop_min_travel_m: float,
                           up: np.ndarray | None = None, max_dz_m: float = np.inf,
-                          max_facing_rad: float = np.pi) -> int:
+                          max_facing_rad: float = np.pi, facing_neighbours: bool = False
+                          ) -> int:
         """Neighbour keyframes of every particle (none more than `max_dz_m` along `up`);
         returns how many particles see a loop (a keyframe facing more than `max_facing_rad`
-        away is a neighbour but not a loop)."""
+        away is not a loop; with `facing_neighbours` it is not a neighbour either unless it
+        is one of the newest)."""
         up = np.array([0.0, 0.0, 1.0]) if up is None else up
         return int(slam_kernels.select_neighbours(
             self.n, self.num_keyframes, self.kf, self.q_cur, self.t_cur, self.kf_travel,
             self.kf_seq, self.next_seq - NEIGHBOURS, travel_m, loop_min_travel_m,
             float(np.cos(max_facing_rad)),
-            np.asarray(up, np.float32), min(max_dz_m, F32_MAX), self.nb, self.nb_loop))
+            np.asarray(up, np.float32), min(max_dz_m, F32_MAX), int(facing_neighbours),
+            self.nb, self.nb_loop))
 
     def _linearize(self, num_src: int, loop_only: bool, cost_cap: float = math.inf) -> None:
         """One GICP linearization of every (particle, neighbour) row at the current poses (no

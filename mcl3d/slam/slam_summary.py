@@ -55,10 +55,13 @@ class LoopCheck:
     # true relative pose (the scan matched to another row of trees, another floor)
     worst_m: float  # the largest such error over the accepted scans
     farthest_m: float  # the largest true distance between a loop keyframe and its scan
+    edges_wrong: int = 0  # loop edges in the written map > WRONG_LOOP_M off
+    edges_worst_m: float = 0.0  # the largest error of a loop edge in the written map
 
     def as_dict(self) -> dict:
         return {"accepted": self.accepted, "wrong": self.wrong, "worst_error_m": self.worst_m,
-                "farthest_keyframe_m": self.farthest_m, "wrong_if_off_by_m": WRONG_LOOP_M}
+                "farthest_keyframe_m": self.farthest_m, "wrong_if_off_by_m": WRONG_LOOP_M,
+                "edges_wrong": self.edges_wrong, "edges_worst_error_m": self.edges_worst_m}
 
 
 @dataclass(frozen=True)
@@ -90,6 +93,12 @@ class SlamSummary:
     consistency: Consistency | None = None
     loop_check: LoopCheck | None = None
     keyframes_made: int = 0  # over the run; beyond the capacity each replaced a kept one
+    # keyframe pairs the representative closed a loop over (trajectory.loop_graph): registered,
+    # of them in the final representative's map (the written map's pose graph), and those
+    # whose registration failed its checks
+    loop_edges_registered: int = 0
+    loop_edges_in_map: int = 0
+    loop_edges_rejected: int = 0
 
     def as_dict(self) -> dict:
         return {
@@ -107,6 +116,9 @@ class SlamSummary:
             "evaluation": evaluation_entry(self.accuracy, self.accuracy_error),
             "consistency": None if self.consistency is None else self.consistency.as_dict(),
             "loops": None if self.loop_check is None else self.loop_check.as_dict(),
+            "loop_edges": {"registered": self.loop_edges_registered,
+                           "in_map": self.loop_edges_in_map,
+                           "rejected": self.loop_edges_rejected},
             "faults": self.faults.as_dict()}
 
 
@@ -138,7 +150,10 @@ def summarize(slam: MonteCarloSlam, trajectories: dict[str, Trajectory],
         particle_state_bytes=slam.particles.state_bytes(), notes=notes,
         odometry_warnings=warnings[:MAX_LISTED_WARNINGS], num_odometry_warnings=len(warnings),
         accuracy=accuracy, accuracy_error=accuracy_error, faults=faults or LogFaults(),
-        consistency=cloud, loop_check=loop_check, keyframes_made=len(slam.keyframe_frames))
+        consistency=cloud, loop_check=loop_check, keyframes_made=len(slam.keyframe_frames),
+        loop_edges_registered=sum(e is not None for e in slam.loop_edges.values()),
+        loop_edges_in_map=len(slam.map_loop_edges()),
+        loop_edges_rejected=sum(e is None for e in slam.loop_edges.values()))
 
 
 def _check_against_truth(slam: MonteCarloSlam, gt: Trajectory | None
@@ -169,7 +184,16 @@ def _check_against_truth(slam: MonteCarloSlam, gt: Trajectory | None
         wrong += off > WRONG_LOOP_M
         worst = max(worst, off)
         farthest = max(farthest, *(float(np.linalg.norm(T[:3, 3])) for T in true_rel))
-    return cloud, LoopCheck(accepted, wrong, worst, farthest)
+    edge_errors = []
+    for e in slam.map_loop_edges():
+        i, j = slam.keyframe_frames[e.source], slam.keyframe_frames[e.target]
+        if i in true_at and j in true_at:
+            true_rel = se3_inverse(true_at[j]) @ true_at[i]
+            edge_errors.append(float(np.linalg.norm((se3_inverse(true_rel)
+                                                     @ e.T_target_source)[:3, 3])))
+    return cloud, LoopCheck(accepted, wrong, worst, farthest,
+                            sum(off > WRONG_LOOP_M for off in edge_errors),
+                            max(edge_errors, default=0.0))
 
 
 def _evaluate(trajectories: dict[str, Trajectory], gt: Trajectory | None
@@ -209,10 +233,17 @@ def summary_rows(summary: SlamSummary, backend: str, output_dir: Path,
             ("hypotheses at the end", f"{s.final_hypotheses} (ESS {s.final_ess:.0f})")]
     if s.elevator_frames:
         rows.append(("elevator", f"{s.elevator_frames} scans"))
+    if s.loop_edges_registered + s.loop_edges_rejected:
+        rows.append(("loop edges", f"{s.loop_edges_registered} keyframe pairs registered "
+                     f"({s.loop_edges_in_map} in the final map), {s.loop_edges_rejected} "
+                     "rejected"))
     if s.loop_check is not None:
         rows.append(("loops vs truth", f"{s.loop_check.accepted} scans corrected by the "
                      f"representative, {s.loop_check.wrong} wrong (> {WRONG_LOOP_M:.0f} m "
                      "off the truth)"))
+        if s.loop_edges_in_map:
+            rows.append(("loop edges vs truth", f"{s.loop_check.edges_wrong} wrong, worst "
+                         f"{s.loop_check.edges_worst_m:.3f} m off"))
     if s.consistency is not None:
         rows.append(("consistency", f"truth inside the cloud's 95% region in "
                      f"{100 * s.consistency.fraction:.1f}% of {s.consistency.scans} scans"))

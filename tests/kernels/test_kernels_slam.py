@@ -76,7 +76,8 @@ def test_predict_composes_and_spreads_with_the_covariance(ti_runtime):
     np.testing.assert_allclose(read_poses(q0, t0), np.repeat((T0 @ dT)[None], 4, 0), atol=2e-5)
 
 
-def test_select_neighbours_matches_numpy(ti_runtime):
+@pytest.mark.parametrize("facing_neighbours", [False, True])
+def test_select_neighbours_matches_numpy(ti_runtime, facing_neighbours):
     import taichi as ti
 
     from mcl3d.kernels import slam
@@ -99,21 +100,29 @@ def test_select_neighbours_matches_numpy(ti_runtime):
     up = np.array([0.0, 0.6, 0.8])
     min_cos = np.cos(np.deg2rad(100.0))
     looping = slam.select_neighbours(n, K, keyframe_array(kf), q, t, travel_arr, seq_arr, 8,
-                                     31.0, 10.0, min_cos, up.astype(np.float32), 3.0, nb,
-                                     nb_loop)
+                                     31.0, 10.0, min_cos, up.astype(np.float32), 3.0,
+                                     int(facing_neighbours), nb, nb_loop)
     kf_t = pack(kf)[..., :3].astype(np.float64)
     d = kf_t - t.to_numpy()[:, None, :]
-    d2 = np.where(np.abs(d @ up) <= 3.0, np.sum(d**2, axis=2), np.inf)
+    all_facing = np.einsum("nka,na->nk", kf[:, :, :3, 0], cur[:, :3, 0])  # +x axes
+    newest = seq >= 8  # numbers 8, 9, 10
+    eligible = np.abs(d @ up) <= 3.0
+    if facing_neighbours:
+        facing_away = ~newest[None, :] & (all_facing < min_cos)
+        assert (eligible & facing_away).any()  # the facing gate leaves some out
+        eligible &= ~facing_away
+    d2 = np.where(eligible, np.sum(d**2, axis=2), np.inf)
     want = np.argsort(d2, axis=1, kind="stable")[:, :3]
     want = np.where(np.isfinite(np.take_along_axis(d2, want, axis=1)), want, -1)
     assert (want == -1).any() and (want >= 0).any()  # the vertical gate left some out
     np.testing.assert_array_equal(nb.to_numpy(), want)
-    facing = np.einsum("nka,na->nk", kf[:, :, :3, 0], cur[:, :3, 0])  # +x axes
-    facing = np.take_along_axis(facing, np.maximum(want, 0), axis=1)
-    not_newest = (want >= 0) & (seq[np.maximum(want, 0)] < 8)  # numbers 8, 9, 10 are newest
+    facing = np.take_along_axis(all_facing, np.maximum(want, 0), axis=1)
+    not_newest = (want >= 0) & ~newest[np.maximum(want, 0)]
     old_enough = not_newest & (31.0 - travel[want] > 10.0)
     want_loop = old_enough & (facing >= min_cos)
-    assert (old_enough & ~want_loop).any() and want_loop.any()  # the facing gate left some out
+    assert want_loop.any()
+    # without facing_neighbours some old neighbours face away: the gate keeps them from loops
+    assert (old_enough & ~want_loop).any() != facing_neighbours
     np.testing.assert_array_equal(nb_loop.to_numpy(), want_loop.astype(np.int32))
     assert looping == int(want_loop.any(axis=1).sum())
     assert nb.to_numpy()[0, 0] == 2 and nb.to_numpy()[0, 1] == 5

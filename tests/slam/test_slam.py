@@ -243,6 +243,7 @@ def test_slam_command_writes_every_output(forest_log, tmp_path, ti_runtime):
     cloud = summary["consistency"]  # the cloud's 95% region against the ground truth
     assert cloud["scans"] == 50 and 0.0 <= cloud["fraction_95"] <= 1.0
     assert summary["loops"]["accepted"] >= 0 and summary["loops"]["wrong"] == 0
+    assert summary["loop_edges"] == {"registered": 0, "in_map": 0, "rejected": 0}  # no loop yet
     assert "consistency" in result.output
     head = (out / "map.ply").read_bytes()[:200]
     count = int(head.split(b"element vertex ")[1].split(b"\n")[0])
@@ -558,3 +559,41 @@ def test_the_free_space_term_weighs_only_while_the_guard_holds_the_floors(ti_run
         slam.step(cloud, None, k * 100_000_000)
     assert slam.free_space is not None
     assert costs == [0.0, 0.0, 3.0, 3.0, 3.0]  # scans 1-2 before the ride, 6-8 after it
+
+
+def test_loops_the_representative_takes_are_registered_and_hold_in_the_written_map(ti_runtime):
+    """A lidar seeing 4 m circles a room 1.2 times: the loops the representative takes become
+    keyframe-to-keyframe edges (the scan's registration and the odometry from its keyframe:
+    within 3 cm and 0.3° of the truth; in this box of look-alike walls some registrations
+    slide off the filter's estimate and are dropped), and the written keyframes hold every
+    registered loop within 2 cm."""
+    from mcl3d.slam.monte_carlo_slam import MonteCarloSlam
+    from mcl3d.slam.slam_config import SlamConfig
+
+    world = room_cloud(np.random.default_rng(0))
+    n = 50
+
+    def truth(i: int) -> np.ndarray:
+        a = 2 * np.pi * 1.2 * i / n
+        return geometry.se3(geometry.rpy_to_rot(0, 0, a + np.pi / 2),
+                            [2.0 * np.cos(a), 1.5 * np.sin(a), 1.2])
+
+    cfg = SlamConfig.model_validate({
+        "particles": 50, "seed": 1, "loop_closure": {"min_travel_m": 4.0},
+        "keyframes": {"overlap": 0.9}, "odometry": {"use_imu": False, "max_range_m": 4.0}})
+    slam = MonteCarloSlam(cfg)
+    for i in range(n):
+        slam.step(geometry.transform_points(geometry.se3_inverse(truth(i)), world), None,
+                  int(1e9 + i * 1e8))
+    edges = slam.map_loop_edges()
+    assert len(edges) >= 2
+    kf_scans = slam.keyframe_frames
+    written = slam._keyframe_poses_by_number()
+    for e in edges:
+        true_rel = geometry.se3_inverse(truth(kf_scans[e.target])) @ truth(kf_scans[e.source])
+        off = geometry.se3_inverse(true_rel) @ e.T_target_source
+        assert np.linalg.norm(off[:3, 3]) < 0.03
+        assert geometry.rotation_angle(off[:3, :3]) < np.radians(0.3)
+        held = geometry.se3_inverse(e.T_target_source) @ geometry.se3_inverse(
+            written[e.target]) @ written[e.source]
+        assert np.linalg.norm(held[:3, 3]) < 0.02

@@ -11,6 +11,7 @@ import numpy as np
 from mcl3d.core.geometry import se3, se3_exp, so3_exp
 from mcl3d.io.trajectory import Trajectory
 from mcl3d.slam.frame_store import SlamFrame, SlamFrames
+from mcl3d.slam.loop_graph import LoopEdge
 from mcl3d.slam.slam_summary import WRONG_LOOP_M, _check_against_truth
 
 SIGMA = np.array([0.01, 0.01, 0.02, 0.1, 0.1, 0.05])
@@ -44,13 +45,21 @@ def test_consistency_and_loops_against_the_truth():
     frames = [frame(int(s), m, cov) for s, m in zip(stamps, means, strict=True)]
     frames[300] = frame(int(stamps[300]), means[300], cov, [0], [right])
     frames[301] = frame(int(stamps[301]), means[301], cov, [0], [wrong])
-    slam = SimpleNamespace(frames=stored(frames), keyframe_frames=[kf])
+    # the loop graph's edges: keyframes 1 and 2 (scans 300, 301) registered onto keyframe 0,
+    # 2 onto the next row; one registration rejected
+    edges = {(1, 0): LoopEdge(1, 0, right, np.eye(6)),
+             (2, 0): LoopEdge(2, 0, se3_exp([0, 0, 0, 0, 4.0, 0]) @ np.linalg.inv(truth[kf])
+                              @ truth[301], np.eye(6)),
+             (2, 1): None}
+    slam = SimpleNamespace(frames=stored(frames), keyframe_frames=[kf, 300, 301],
+                           map_loop_edges=lambda: [e for e in edges.values() if e is not None])
     cloud, loops = _check_against_truth(slam, gt)
     assert cloud.scans == n and 0.9 <= cloud.fraction <= 0.99
     assert loops.accepted == 2 and loops.wrong == 1
     assert loops.worst_m > WRONG_LOOP_M and abs(loops.farthest_m - 0.5 * 296) < 1.0
+    assert loops.edges_wrong == 1 and abs(loops.edges_worst_m - 4.0) < 1e-6
     narrow = [frame(f.stamp_ns, f.T_mean, cov / 25) for f in frames]
-    cloud, _ = _check_against_truth(SimpleNamespace(frames=stored(narrow), keyframe_frames=[]),
-                                    gt)
+    cloud, _ = _check_against_truth(SimpleNamespace(frames=stored(narrow), keyframe_frames=[],
+                                                    map_loop_edges=list), gt)
     assert cloud.fraction < 0.1
     assert _check_against_truth(slam, None) == (None, None)
