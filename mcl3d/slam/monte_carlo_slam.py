@@ -232,7 +232,7 @@ class MonteCarloSlam:
                                       cfg.loop_closure.neighbour_max_dz_m)
         self.vertical_offset = np.zeros(3)  # elevator motion the odometry did not see
         self._ride_variance_m2 = 0.0  # the elevator's vertical random walk, summed
-        self._written_keyframes = None  # ((scans, bridged), poses) of the last result asked
+        self._written_keyframes = None  # ((scans, bridged, graph), poses) of the last asked
         # (source, target) keyframe numbers of each loop the representative took -> its
         # registered edge, None when the registration failed (mcl3d/slam/loop_graph.py)
         self.loop_edges: dict[tuple[int, int], LoopEdge | None] = {}
@@ -554,9 +554,10 @@ class MonteCarloSlam:
         return self.particles.keyframe_poses(self._rep)[self.particles.slots_in_order()]
 
     def _keyframe_poses_by_number(self) -> np.ndarray:
-        """(keyframes made, 4, 4): the representative's pose of every keyframe, bridged
-        between the keyframes where it took a loop correction when so configured (kept until
-        the next scan: the trajectory and the map both ask at the end of a run)."""
+        """(keyframes made, 4, 4): the representative's pose of every keyframe, solved as the
+        loop graph or bridged between the keyframes where it took a loop correction when so
+        configured (kept until the next scan: the trajectory and the map both ask at the end
+        of a run)."""
         written = self.cfg.trajectory
         key = (len(self.frames), written.bridge_between_loops, written.loop_graph)
         if self._written_keyframes is not None and self._written_keyframes[0] == key:

@@ -188,8 +188,8 @@ def _check_against_truth(slam: MonteCarloSlam, gt: Trajectory | None
     for e in slam.map_loop_edges():
         i, j = slam.keyframe_frames[e.source], slam.keyframe_frames[e.target]
         if i in true_at and j in true_at:
-            true_rel = se3_inverse(true_at[j]) @ true_at[i]
-            edge_errors.append(float(np.linalg.norm((se3_inverse(true_rel)
+            T_true = se3_inverse(true_at[j]) @ true_at[i]
+            edge_errors.append(float(np.linalg.norm((se3_inverse(T_true)
                                                      @ e.T_target_source)[:3, 3])))
     return cloud, LoopCheck(accepted, wrong, worst, farthest,
                             sum(off > WRONG_LOOP_M for off in edge_errors),
