@@ -64,31 +64,60 @@ def register_loop(source: int, target: int, cloud: np.ndarray, cloud_target: np.
     estimate further than it can be off."""
     result = align(cloud_target.astype(np.float64), cloud.astype(np.float64), T_target_cloud,
                    voxel_resolution_m=LOOP_RESOLUTIONS_M)
-    moved = se3_inverse(T_target_cloud) @ result.T_target_source
     if (not result.converged or result.num_inliers < MIN_INLIER_FRACTION * len(cloud)
-            or np.linalg.norm(moved[:3, 3]) > MAX_CORRECTION_M
-            or np.degrees(rotation_angle(moved[:3, :3])) > MAX_CORRECTION_DEG):
+            or not _within_reach(se3_inverse(T_target_cloud) @ result.T_target_source)):
         return None
-    T_cloud_source = np.eye(4) if T_source_cloud is None else se3_inverse(T_source_cloud)
+    T_source_cloud = np.eye(4) if T_source_cloud is None else T_source_cloud
     # a perturbation δ of the cloud's pose is Ad(T_source_cloud) δ of the source keyframe's
-    to_source = np.linalg.inv(se3_adjoint(se3_inverse(T_cloud_source)))
+    to_source = np.linalg.inv(se3_adjoint(T_source_cloud))
     H = 0.5 * (result.H + result.H.T)
-    return LoopEdge(source, target, result.T_target_source @ T_cloud_source,
+    return LoopEdge(source, target, result.T_target_source @ se3_inverse(T_source_cloud),
                     to_source.T @ H @ to_source + np.eye(6) * MIN_EDGE_INFORMATION)
+
+
+def _within_reach(T_offset: np.ndarray) -> bool:
+    """Whether an offset from the filter's loop is one a registration can mean."""
+    return bool(np.linalg.norm(T_offset[:3, 3]) <= MAX_CORRECTION_M
+                and np.degrees(rotation_angle(T_offset[:3, :3])) <= MAX_CORRECTION_DEG)
+
+
+class LoopEdges:
+    """The loop edges of a run, by (source, target) keyframe numbers: a pair is registered
+    when the representative first takes it and again from a much nearer scan
+    (`register_again`); a failed registration keeps an earlier success."""
+
+    def __init__(self) -> None:
+        self._edges: dict[tuple[int, int], LoopEdge | None] = {}  # None: every try failed
+        self._range_m: dict[tuple[int, int], float] = {}  # of the scan last registered
+
+    def take(self, source: int, target: int, scan: np.ndarray, cloud_target: np.ndarray,
+             T_target_scan: np.ndarray, T_source_scan: np.ndarray) -> None:
+        """The representative took the loop source -> target on `scan` (see
+        `register_loop`)."""
+        pair = (source, target)
+        distance_m = float(np.linalg.norm(T_target_scan[:3, 3]))
+        if source == target or not register_again(self._range_m.get(pair), distance_m):
+            return
+        edge = register_loop(source, target, scan, cloud_target, T_target_scan, T_source_scan)
+        if edge is not None or pair not in self._edges:
+            self._edges[pair] = edge
+        self._range_m[pair] = distance_m
+
+    def registered(self) -> list[LoopEdge]:
+        return [e for e in self._edges.values() if e is not None]
+
+    @property
+    def rejected(self) -> int:
+        """Pairs whose every registration failed its checks."""
+        return sum(e is None for e in self._edges.values())
 
 
 def agreeing_edges(T_world_keyframe: np.ndarray, edges: list[LoopEdge]) -> list[LoopEdge]:
     """The edges the keyframes `T_world_keyframe` (the representative's own, by number) hold
     within the registration's reach: a loop another hypothesis took (a look-alike floor,
     the next row) is metres off in this representative's map, and not part of it."""
-    out = []
-    for e in edges:
-        off = se3_inverse(e.T_target_source) @ se3_inverse(T_world_keyframe[e.target]) \
-            @ T_world_keyframe[e.source]
-        if (np.linalg.norm(off[:3, 3]) <= MAX_CORRECTION_M
-                and np.degrees(rotation_angle(off[:3, :3])) <= MAX_CORRECTION_DEG):
-            out.append(e)
-    return out
+    return [e for e in edges if _within_reach(se3_inverse(e.T_target_source) @ se3_inverse(
+        T_world_keyframe[e.target]) @ T_world_keyframe[e.source])]
 
 
 def solve_pose_graph(T_world_keyframe: np.ndarray, T_motion_keyframe: np.ndarray,
@@ -116,12 +145,9 @@ def solve_pose_graph(T_world_keyframe: np.ndarray, T_motion_keyframe: np.ndarray
             for a, Ja in J.items():
                 b[6 * a:6 * a + 6] += Ja.T @ W @ r
                 for c, Jc in J.items():
-                    block = Ja.T @ W @ Jc
-                    ii, jj = np.meshgrid(np.arange(6 * a, 6 * a + 6),
-                                         np.arange(6 * c, 6 * c + 6), indexing="ij")
-                    rows.append(ii.ravel())
-                    cols.append(jj.ravel())
-                    vals.append(block.ravel())
+                    rows.append(np.repeat(np.arange(6 * a, 6 * a + 6), 6))
+                    cols.append(np.tile(np.arange(6 * c, 6 * c + 6), 6))
+                    vals.append((Ja.T @ W @ Jc).ravel())
         H = sparse.csc_matrix((np.concatenate(vals), (np.concatenate(rows),
                                                       np.concatenate(cols))), shape=(6 * K,) * 2)
         delta = spsolve(H[free, free], -b[free]).reshape(K - 2, 6)

@@ -68,13 +68,7 @@ from mcl3d.slam.frame_store import SlamFrame, SlamFrames
 from mcl3d.slam.free_space import FreeSpace
 from mcl3d.slam.keyframe_store import KeyframeBook, slot_to_reuse
 from mcl3d.slam.loop_bridge import anchored_keyframes, bridge_between_anchors, step_covariances
-from mcl3d.slam.loop_graph import (
-    LoopEdge,
-    agreeing_edges,
-    register_again,
-    register_loop,
-    solve_pose_graph,
-)
+from mcl3d.slam.loop_graph import LoopEdge, LoopEdges, agreeing_edges, solve_pose_graph
 from mcl3d.slam.slam_config import PredictionNoiseConfig, PruningConfig, SlamConfig
 from mcl3d.slam.slam_particles import DRIFT_SUMS, SlamParticles
 
@@ -233,10 +227,7 @@ class MonteCarloSlam:
         self.vertical_offset = np.zeros(3)  # elevator motion the odometry did not see
         self._ride_variance_m2 = 0.0  # the elevator's vertical random walk, summed
         self._written_keyframes = None  # ((scans, bridged, graph), poses) of the last asked
-        # (source, target) keyframe numbers of each loop the representative took -> its
-        # registered edge, None when the registration failed (mcl3d/slam/loop_graph.py)
-        self.loop_edges: dict[tuple[int, int], LoopEdge | None] = {}
-        self._loop_range_m: dict[tuple[int, int], float] = {}  # of the scan each was from
+        self.loop_edges = LoopEdges()  # each loop the representative took, registered
 
     # ---- one scan ----
 
@@ -510,16 +501,8 @@ class MonteCarloSlam:
         T_source_scan = np.eye(4) if source_scan == len(self.frames) else \
             se3_inverse(self.frames.pose("T_motion_lidar", source_scan)) @ T_odom
         for slot, T_target in zip(loop_slots, T_loop_keyframes, strict=True):
-            pair = (source, int(p.seq[slot]))
-            T_target_scan = se3_inverse(T_target) @ T_rep
-            distance_m = float(np.linalg.norm(T_target_scan[:3, 3]))
-            if pair[1] == source or not register_again(self._loop_range_m.get(pair), distance_m):
-                continue
-            edge = register_loop(*pair, down, self.keyframes.clouds[slot], T_target_scan,
-                                 T_source_scan)
-            if edge is not None or pair not in self.loop_edges:
-                self.loop_edges[pair] = edge
-            self._loop_range_m[pair] = distance_m
+            self.loop_edges.take(source, int(p.seq[slot]), down, self.keyframes.clouds[slot],
+                                 se3_inverse(T_target) @ T_rep, T_source_scan)
 
     def _prune(self, step: int, scored: bool) -> tuple[int, np.ndarray, np.ndarray]:
         """Prune; particles without a neighbour keyframe (unmapped space, another floor) get
@@ -582,11 +565,8 @@ class MonteCarloSlam:
         """The registered loop edges the representative's own keyframes agree with (the loop
         graph's; the others were taken by hypotheses that died)."""
         p = self.particles
-        registered = [e for e in self.loop_edges.values() if e is not None]
-        if not registered:
-            return []
         return agreeing_edges(self.keyframes.poses_by_number(p.keyframe_poses(self._rep), p.seq),
-                              registered)
+                              self.loop_edges.registered())
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
         """(stamps_ns, poses) of every scan as the representative particle's map places it:

@@ -151,9 +151,9 @@ def summarize(slam: MonteCarloSlam, trajectories: dict[str, Trajectory],
         odometry_warnings=warnings[:MAX_LISTED_WARNINGS], num_odometry_warnings=len(warnings),
         accuracy=accuracy, accuracy_error=accuracy_error, faults=faults or LogFaults(),
         consistency=cloud, loop_check=loop_check, keyframes_made=len(slam.keyframe_frames),
-        loop_edges_registered=sum(e is not None for e in slam.loop_edges.values()),
+        loop_edges_registered=len(slam.loop_edges.registered()),
         loop_edges_in_map=len(slam.map_loop_edges()),
-        loop_edges_rejected=sum(e is None for e in slam.loop_edges.values()))
+        loop_edges_rejected=slam.loop_edges.rejected)
 
 
 def _check_against_truth(slam: MonteCarloSlam, gt: Trajectory | None
