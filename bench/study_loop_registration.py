@@ -64,6 +64,66 @@ def deskewed(points: np.ndarray, times_s: np.ndarray, trajectory, stamp_s: float
     return np.einsum("nij,nj->ni", T_rel[:, :3, :3], points) + T_rel[:, :3, 3]
 
 
+def keyframe_clouds(log: Path, scans: set[int], truth, odometry, fov_deg: float, voxel_m: float
+                    ) -> tuple[dict[str, dict[int, np.ndarray]], dict[int, np.ndarray]]:
+    """Each variant's downsampled cloud of the log's scans `scans`, and their true poses."""
+    from mcl3d.io.logs.reader import LogReader
+    from mcl3d.registration.preprocess import voxel_downsample
+    from mcl3d.slam.monte_carlo_slam import crop_fov
+
+    clouds: dict[str, dict[int, np.ndarray]] = {v: {} for v in VARIANTS}
+    T_true: dict[int, np.ndarray] = {}
+    with LogReader(log) as reader:
+        for i, scan in enumerate(reader.scans()):
+            if i > max(scans):
+                break
+            if i not in scans:
+                continue
+            if scan.times_s is None:
+                raise SystemExit(f"{log} has no per-point times: nothing to deskew")
+            points, times = crop_fov(scan.points.astype(np.float64),
+                                     scan.times_s.astype(np.float64), fov_deg)
+            keep = np.linalg.norm(points, axis=1) > MIN_RANGE_M
+            points, times = points[keep], times[keep]
+            stamp_s = scan.stamp_ns * 1e-9
+            period_s = float(times.max() - times.min())
+            T_true[i] = truth.interpolate_poses(np.array([stamp_s]))[0]
+            for variant, cloud in zip(VARIANTS, (
+                    points, deskewed(points, times, truth, stamp_s),
+                    deskewed(points, times, odometry, stamp_s),
+                    deskewed(points, times, odometry, stamp_s, -period_s)), strict=True):
+                clouds[variant][i] = voxel_downsample(cloud, voxel_m)
+    return clouds, T_true
+
+
+def registration_errors(pairs: list[tuple[int, int]], keyframe_scans: np.ndarray,
+                        clouds: dict[int, np.ndarray], T_true: dict[int, np.ndarray],
+                        offsets: list[np.ndarray]) -> dict:
+    """Median errors of registering each pair's source scan onto its target, as the loop
+    graph does, from the truth moved by `offsets`."""
+    from mcl3d.core.geometry import se3_inverse, se3_log
+    from mcl3d.registration.align import align
+    from mcl3d.slam.loop_graph import LOOP_RESOLUTIONS_M
+
+    errors = []
+    for (source, target), offset in zip(pairs, offsets, strict=True):
+        i, j = int(keyframe_scans[source]), int(keyframe_scans[target])
+        T_target_source = se3_inverse(T_true[j]) @ T_true[i]
+        result = align(clouds[j], clouds[i], T_target_source @ offset,
+                       voxel_resolution_m=LOOP_RESOLUTIONS_M)
+        position_m = T_true[j][:3, :3] @ (result.T_target_source[:3, 3]
+                                          - T_target_source[:3, 3])
+        rotation_deg = np.degrees(T_true[i][:3, :3] @ se3_log(
+            se3_inverse(T_target_source) @ result.T_target_source)[:3])
+        errors.append(np.r_[np.abs(position_m), np.abs(rotation_deg),
+                            np.linalg.norm(position_m)])
+    e = np.array(errors)
+    return {"median_abs_xyz_m": np.median(e[:, :3], axis=0).round(3),
+            "median_abs_roll_pitch_yaw_deg": np.median(e[:, 3:6], axis=0).round(2),
+            "median_m": round(float(np.median(e[:, 6])), 3),
+            "p90_m": round(float(np.percentile(e[:, 6], 90)), 3)}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("log", type=Path)
@@ -75,73 +135,36 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=RESULTS / "study_loop_registration.json")
     args = parser.parse_args()
+    frames, odometry_tum = args.slam_out / "frames.csv", args.slam_out / "odometry.tum"
+    for path in (args.log, args.truth, frames, odometry_tum):
+        if not path.is_file():
+            raise SystemExit(f"{path} does not exist (give a log, its TUM ground truth and a "
+                             "`mcl3d slam` output folder)")
+    if args.pairs < 1 or args.voxel_m <= 0:
+        raise SystemExit("--pairs must be >= 1 and --voxel-m > 0")
 
     from results_io import Run
 
     from mcl3d.core import runtime
-    from mcl3d.core.geometry import se3, se3_inverse, se3_log, so3_exp
-    from mcl3d.io.logs.reader import LogReader
+    from mcl3d.core.geometry import se3, so3_exp
     from mcl3d.io.trajectory import read_tum
-    from mcl3d.registration.align import align
-    from mcl3d.registration.preprocess import voxel_downsample
-    from mcl3d.slam.loop_graph import LOOP_RESOLUTIONS_M
-    from mcl3d.slam.monte_carlo_slam import crop_fov
 
     run = Run("study_loop_registration")
     runtime.init("cpu")
-    pairs, keyframe_scans = loop_pairs(args.slam_out / "frames.csv", args.pairs)
+    pairs, keyframe_scans = loop_pairs(frames, args.pairs)
     if not pairs:
-        raise SystemExit(f"{args.slam_out / 'frames.csv'} has no loop: nothing to register")
-    truth = read_tum(args.truth)
-    odometry = read_tum(args.slam_out / "odometry.tum")
-    needed = {int(keyframe_scans[k]) for pair in pairs for k in pair}
-    clouds: dict[str, dict[int, np.ndarray]] = {v: {} for v in VARIANTS}
-    T_true: dict[int, np.ndarray] = {}
-    with LogReader(args.log) as reader:
-        for i, scan in enumerate(reader.scans()):
-            if i > max(needed):
-                break
-            if i not in needed:
-                continue
-            if scan.times_s is None:
-                raise SystemExit(f"{args.log} has no per-point times: nothing to deskew")
-            points, times = crop_fov(scan.points.astype(np.float64),
-                                     scan.times_s.astype(np.float64), args.fov_deg)
-            keep = np.linalg.norm(points, axis=1) > MIN_RANGE_M
-            points, times = points[keep], times[keep]
-            stamp_s = scan.stamp_ns * 1e-9
-            period_s = float(times.max() - times.min())
-            T_true[i] = truth.interpolate_poses(np.array([stamp_s]))[0]
-            for variant, cloud in zip(VARIANTS, (
-                    points, deskewed(points, times, truth, stamp_s),
-                    deskewed(points, times, odometry, stamp_s),
-                    deskewed(points, times, odometry, stamp_s, -period_s)), strict=True):
-                clouds[variant][i] = voxel_downsample(cloud, args.voxel_m)
+        raise SystemExit(f"{frames} has no loop: nothing to register")
+    truth, odometry = read_tum(args.truth), read_tum(odometry_tum)
+    clouds, T_true = keyframe_clouds(args.log, {int(keyframe_scans[k]) for p in pairs for k in p},
+                                     truth, odometry, args.fov_deg, args.voxel_m)
     rng = np.random.default_rng(args.seed)
     offsets = [se3(so3_exp(np.radians(rng.normal(0, INIT_SIGMA_DEG, 3))),
                    rng.normal(0, INIT_SIGMA_M, 3)) for _ in pairs]
     figures = {"pairs": len(pairs), "log": str(args.log), "slam_out": str(args.slam_out)}
     print(f"{len(pairs)} loop pairs of {args.slam_out}")
     for variant in VARIANTS:
-        errors = []
-        for (source, target), offset in zip(pairs, offsets, strict=True):
-            i, j = int(keyframe_scans[source]), int(keyframe_scans[target])
-            T_target_source = se3_inverse(T_true[j]) @ T_true[i]
-            result = align(clouds[variant][j], clouds[variant][i], T_target_source @ offset,
-                           voxel_resolution_m=LOOP_RESOLUTIONS_M)
-            position_m = T_true[j][:3, :3] @ (result.T_target_source[:3, 3]
-                                              - T_target_source[:3, 3])
-            rotation_deg = np.degrees(T_true[i][:3, :3] @ se3_log(
-                se3_inverse(T_target_source) @ result.T_target_source)[:3])
-            errors.append(np.r_[np.abs(position_m), np.abs(rotation_deg),
-                                np.linalg.norm(position_m)])
-        e = np.array(errors)
-        figures[variant] = {
-            "median_abs_xyz_m": np.median(e[:, :3], axis=0).round(3),
-            "median_abs_roll_pitch_yaw_deg": np.median(e[:, 3:6], axis=0).round(2),
-            "median_m": round(float(np.median(e[:, 6])), 3),
-            "p90_m": round(float(np.percentile(e[:, 6], 90)), 3)}
-        f = figures[variant]
+        f = figures[variant] = registration_errors(pairs, keyframe_scans, clouds[variant],
+                                                   T_true, offsets)
         print(f"{variant:26s} |x y z| {f['median_abs_xyz_m']} m  |roll pitch yaw| "
               f"{f['median_abs_roll_pitch_yaw_deg']} deg  median {f['median_m']} m  "
               f"p90 {f['p90_m']} m")
