@@ -547,17 +547,16 @@ class MonteCarloSlam:
             return self._written_keyframes[1]
         p = self.particles
         T = self.keyframes.poses_by_number(p.keyframe_poses(self._rep), p.seq)
-        kf_frames = np.asarray(self.keyframe_frames)
+        kf_frames = np.asarray(self.keyframe_frames, dtype=np.int64)
+        motion = self.frames.poses("T_motion_lidar")[kf_frames]
         drift = np.asarray(self.keyframes.drift_variance)
         if written.loop_graph and len(T):
-            motion = self.frames.poses("T_motion_lidar")[kf_frames]
             T = solve_pose_graph(T, motion, step_covariances(motion, drift, self._up()),
                                  self.map_loop_edges())
         elif written.bridge_between_loops and len(T):
             loop_scans = np.flatnonzero((self.frames.loop_keyframes >= 0).any(axis=1))
-            T = bridge_between_anchors(T, self.frames.poses("T_motion_lidar")[kf_frames],
-                                       drift, anchored_keyframes(loop_scans, kf_frames),
-                                       self._up())
+            T = bridge_between_anchors(T, motion, drift,
+                                       anchored_keyframes(loop_scans, kf_frames), self._up())
         self._written_keyframes = (key, T)
         return T
 
