@@ -252,6 +252,44 @@ def _office_tours(room_visit, n_rooms: int, yc: float, openings_x: list[float],
     return tours
 
 
+def _stair_flights(b: MeshBuilder, stair: tuple, z: float, floor_height_m: float) -> None:
+    """Two flights of ten steps with a landing between them, from floor z to the next."""
+    n_steps, rise = 10, floor_height_m / 20
+    for s in range(n_steps):
+        b.box([stair[0] + 0.3 * s, stair[2], z], [stair[0] + 0.3 * (s + 1), stair[2] + 1.2,
+                                                  z + rise * (s + 1)], CONCRETE)
+        b.box([stair[0] + 0.3 * s, stair[3] - 1.2, z + floor_height_m / 2],
+              [stair[0] + 0.3 * (s + 1), stair[3], z + floor_height_m - rise * s], CONCRETE)
+
+
+def _elevator_cab() -> tuple[MeshBuilder, MeshBuilder]:
+    """The cab's shell (floor, roof, walls, the doorway's lintel) and its sliding door, in
+    the cab's frame (floor at z = 0)."""
+    shell, door = MeshBuilder(), MeshBuilder()
+    half, wall, cab_h = 1.1, 0.08, 2.4
+    outer = half + wall
+    shell.box([-outer, -outer, -0.15], [outer, outer, 0.0], METAL)
+    shell.box([-outer, -outer, cab_h], [outer, outer, cab_h + 0.1], METAL)
+    shell.box([-half - wall, -half, 0.0], [-half, half, cab_h], METAL)
+    shell.box([half, -half, 0.0], [half + wall, half, cab_h], METAL)
+    shell.box([-half, half, 0.0], [half, half + wall, cab_h], METAL)
+    shell.box([-half, -half - wall, 0.0], [-0.5, -half, cab_h], METAL)
+    shell.box([0.5, -half - wall, 0.0], [half, -half, cab_h], METAL)
+    shell.box([-0.5, -half - wall, 2.1], [0.5, -half, cab_h], METAL)
+    door.box([-0.5, -half - wall, 0.0], [0.5, -half - 0.02, 2.1], METAL)
+    return shell, door
+
+
+def _room_visits(corridor_y_m: float, room_w: float) -> list[tuple[float, float]]:
+    """The corridor walk into two south rooms and out again (the building's routes)."""
+    loop = [(6.0, corridor_y_m)]
+    for i in (2, 4):
+        xd = i * room_w + 1.6
+        loop += [(xd, corridor_y_m), (xd, 4.4), (xd + 1.4, 2.8), (xd + 2.8, 3.4),
+                 (xd + 1.6, 4.8), (xd + 0.1, 5.3), (xd + 0.0, corridor_y_m)]
+    return [*loop, (31.0, corridor_y_m), (31.0, corridor_y_m + 0.05)]
+
+
 def building(seed: int = 0, n_floors: int = 3, floor_height_m: float = 3.5) -> World:
     """Near-identical floors around a corridor, a stairwell and an elevator with a moving cab."""
     if n_floors < 2:
@@ -296,36 +334,14 @@ def building(seed: int = 0, n_floors: int = 3, floor_height_m: float = 3.5) -> W
         _wall_x(b, shaft[0] - 0.2, shaft[1] + 0.2, shaft[3] + 0.1, 0.2, z, floor_height_m, [],
                 CONCRETE)
         b.box([6.0, 0.3, z + 2.5], [6.3, 0.6, z + 2.9], METAL)  # a vent: same on every floor
-        if k < n_floors - 1:  # two flights with a landing in the stairwell
-            n_steps, rise = 10, floor_height_m / 20
-            for s in range(n_steps):
-                b.box([stair[0] + 0.3 * s, stair[2], z], [stair[0] + 0.3 * (s + 1), stair[2] + 1.2,
-                                                          z + rise * (s + 1)], CONCRETE)
-                b.box([stair[0] + 0.3 * s, stair[3] - 1.2, z + floor_height_m / 2],
-                      [stair[0] + 0.3 * (s + 1), stair[3], z + floor_height_m - rise * s],
-                      CONCRETE)
+        if k < n_floors - 1:
+            _stair_flights(b, stair, z, floor_height_m)
     top = floors[-1] + floor_height_m - 0.3
     b.box([-0.2, -0.2, top], [length + 0.2, width + 0.2, top + 0.3], CEILING)
     b.box([shaft[0], shaft[2], -1.5], [shaft[1], shaft[3], -1.3], CONCRETE)  # shaft pit
-    shell, door = MeshBuilder(), MeshBuilder()
-    half, wall, cab_h = 1.1, 0.08, 2.4
-    outer = half + wall
-    shell.box([-outer, -outer, -0.15], [outer, outer, 0.0], METAL)
-    shell.box([-outer, -outer, cab_h], [outer, outer, cab_h + 0.1], METAL)
-    shell.box([-half - wall, -half, 0.0], [-half, half, cab_h], METAL)
-    shell.box([half, -half, 0.0], [half + wall, half, cab_h], METAL)
-    shell.box([-half, half, 0.0], [half, half + wall, cab_h], METAL)
-    shell.box([-half, -half - wall, 0.0], [-0.5, -half, cab_h], METAL)
-    shell.box([0.5, -half - wall, 0.0], [half, -half, cab_h], METAL)
-    shell.box([-0.5, -half - wall, 2.1], [0.5, -half, cab_h], METAL)
-    door.box([-0.5, -half - wall, 0.0], [0.5, -half - 0.02, 2.1], METAL)
+    shell, door = _elevator_cab()
     yc = 0.5 * (ys + yn)
-    loop = [(6.0, yc)]
-    for i in (2, 4):
-        xd = i * room_w + 1.6
-        loop += [(xd, yc), (xd, 4.4), (xd + 1.4, 2.8), (xd + 2.8, 3.4), (xd + 1.6, 4.8),
-                 (xd + 0.1, 5.3), (xd + 0.0, yc)]
-    loop += [(31.0, yc), (31.0, yc + 0.05)]
+    loop = _room_visits(yc, room_w)
     return World(
         name="building", seed=seed, static=b.build(), ground=g.build(),
         routes={"ground": np.array(loop), "loop": np.array(loop), "handheld": np.array(loop),
