@@ -539,6 +539,15 @@ and 5) did no better; four times the prediction noise holds the truth in 73% / 5
 but writes 0.187 / 0.529 m (seeds 1 and 5). Not met: ≤ 0.5× the front-end on seeds 1 and 5,
 consistency ~95%.
 
+**Where the front-end's height drift comes from** (docs/slam.md, "What limits the graph
+without an IMU"; `bench/study_front_end_drift.py`, every scan of paper-forest seeds 1–5,
+2026-11-28): cropped to 180° as SLAM crops it, the LiDAR-only front-end's pitch error grows
+at 0.050–0.065°/s deskewed by itself and 0.064–0.087°/s deskewed with the true motion; with
+the whole view at −0.005–0.024°/s deskewed by itself (0.020–0.030°/s with the true motion;
+ATE 0.11–0.30 m against 0.34–1.14 m), making 3.5–5.4× fewer keyframes. The nod makes the
+jitter (one scan's pitch error 0.76–0.80° cropped, 0.33–0.37° uncropped with the true
+motion), the crop the drift the loop graph has to take out.
+
 
 `paper-elevator` (`mcl3d simulate building --trajectory paper-elevator`: 1F → 3F by the
 stairs, the elevator down to 2F, stairs down to 1F, 264–270 m, 302 s; 1,000 particles,
