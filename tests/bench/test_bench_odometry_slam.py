@@ -2,28 +2,8 @@
 
 from __future__ import annotations
 
-import importlib
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
-
-BENCH = Path(__file__).resolve().parents[2] / "bench"
-
-
-@pytest.fixture
-def bench(monkeypatch):
-    monkeypatch.syspath_prepend(str(BENCH))
-    loaded = {}
-
-    def load(name: str):
-        loaded[name] = importlib.import_module(name)
-        return loaded[name]
-
-    yield load
-    for name in loaded:
-        sys.modules.pop(name, None)
 
 
 def _straight(n: int, step_m: float = 0.1) -> np.ndarray:

@@ -3,23 +3,17 @@ and a study's earlier text when its JSON is absent."""
 
 from __future__ import annotations
 
-import importlib
 import json
-import sys
 from pathlib import Path
 
 import pytest
 
-BENCH = Path(__file__).resolve().parents[2] / "bench"
-
 
 @pytest.fixture
-def run_all(tmp_path, monkeypatch):
-    monkeypatch.syspath_prepend(str(BENCH))
-    module = importlib.import_module("run_all")
+def run_all(bench, tmp_path, monkeypatch):
+    module = bench("run_all")
     monkeypatch.setattr(module, "RESULTS", tmp_path)
-    yield module
-    sys.modules.pop("run_all", None)
+    return module
 
 
 def write_result(folder: Path, name: str, figures: dict) -> None:

@@ -2,23 +2,15 @@
 
 from __future__ import annotations
 
-import importlib
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 
 from mcl3d.core.geometry import se3, so3_exp
 
-BENCH = Path(__file__).resolve().parents[2] / "bench"
-
 
 @pytest.fixture
-def study(monkeypatch):
-    monkeypatch.syspath_prepend(str(BENCH))
-    yield importlib.import_module("study_front_end_drift")
-    sys.modules.pop("study_front_end_drift", None)
+def study(bench):
+    return bench("study_front_end_drift")
 
 
 def walk(stamps_s: np.ndarray, turn_deg_per_s: float = 3.0) -> np.ndarray:

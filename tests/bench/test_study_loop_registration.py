@@ -2,24 +2,16 @@
 
 from __future__ import annotations
 
-import importlib
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 
 from mcl3d.core.geometry import se3_exp
 from mcl3d.io.trajectory import Trajectory
 
-BENCH = Path(__file__).resolve().parents[2] / "bench"
-
 
 @pytest.fixture
-def study(monkeypatch):
-    monkeypatch.syspath_prepend(str(BENCH))
-    yield importlib.import_module("study_loop_registration")
-    sys.modules.pop("study_loop_registration", None)
+def study(bench):
+    return bench("study_loop_registration")
 
 
 def test_loop_pairs_are_the_newest_keyframe_and_each_loop_keyframe(study, tmp_path):
