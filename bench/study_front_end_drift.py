@@ -29,11 +29,12 @@ def relative_rotation_errors(T_est: np.ndarray, T_true: np.ndarray, starts: np.n
                              lag: int) -> np.ndarray:
     """Rotation vectors (rad, in the sensor frame at the window's end) of the estimate's
     motion from each start to start + lag against the true motion."""
-    from mcl3d.core.geometry import se3_inverse, so3_log
+    from mcl3d.core.geometry import so3_log
 
-    est = np.einsum("nij,njk->nik", se3_inverse(T_est[starts]), T_est[starts + lag])
-    true = np.einsum("nij,njk->nik", se3_inverse(T_true[starts]), T_true[starts + lag])
-    return so3_log(np.einsum("nji,njk->nik", true[:, :3, :3], est[:, :3, :3]))
+    def turn(T: np.ndarray) -> np.ndarray:
+        return np.einsum("nji,njk->nik", T[starts, :3, :3], T[starts + lag, :3, :3])
+
+    return so3_log(np.einsum("nji,njk->nik", turn(T_true), turn(T_est)))
 
 
 def rotation_drift(stamps_s: np.ndarray, T_est: np.ndarray, T_true: np.ndarray,
