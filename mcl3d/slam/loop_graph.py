@@ -12,9 +12,10 @@ that registration and the odometry from a to the scan, its information the regis
 GICP Hessian. A pair is registered once, and again from a scan at most half as far from b
 (nearer, the scan overlaps b's cloud more). The representative of a scan may hold a
 hypothesis that later dies (another floor, the next row): the graph takes only the edges the
-final representative's own keyframes agree with, within the registration's reach. Solved by
-Gauss-Newton on SE(3) (right perturbations, rotation first), the first and the newest
-keyframe fixed.
+final representative's own keyframes agree with, within the registration's reach. Where a
+keyframe measured up from the plumb surfaces it saw (mcl3d/slam/structure_up.py), its tilt
+is held to that too. Solved by Gauss-Newton on SE(3) (right perturbations, rotation first),
+the first and the newest keyframe fixed.
 """
 
 from __future__ import annotations
@@ -25,8 +26,9 @@ import numpy as np
 from scipy import sparse
 from scipy.sparse.linalg import spsolve
 
-from mcl3d.core.geometry import rotation_angle, se3_adjoint, se3_exp, se3_inverse, se3_log
+from mcl3d.core.geometry import hat, rotation_angle, se3_adjoint, se3_exp, se3_inverse, se3_log
 from mcl3d.registration.align import align
+from mcl3d.slam.structure_up import UpMeasurement
 
 GRAPH_ITERATIONS = 5  # Gauss-Newton steps from the filter's poses (converged in 2-3)
 LOOP_RESOLUTIONS_M = (2.0, 1.0, 0.5)  # coarse to fine: the filter's estimate can be 1 m off
@@ -121,11 +123,14 @@ def agreeing_edges(T_world_keyframe: np.ndarray, edges: list[LoopEdge]) -> list[
 
 
 def solve_pose_graph(T_world_keyframe: np.ndarray, T_motion_keyframe: np.ndarray,
-                     step_cov: np.ndarray, loops: list[LoopEdge]) -> np.ndarray:
+                     step_cov: np.ndarray, loops: list[LoopEdge],
+                     ups: dict[int, UpMeasurement] | None = None,
+                     up_world: np.ndarray | None = None) -> np.ndarray:
     """(K, 4, 4) keyframe poses minimizing Σ rᵀ W r over the odometry edges (keyframe k to
     k + 1: its measured motion `T_motion_keyframe[k]⁻¹ T_motion_keyframe[k + 1]`, covariance
-    `step_cov[k]`) and the loop edges (information `LoopEdge.information`), from
-    `T_world_keyframe`. The first and the newest keyframe keep their poses, as the bridge's
+    `step_cov[k]`), the loop edges (information `LoopEdge.information`) and, with `ups` and
+    `up_world`, each measured keyframe's tilt (its up in its own frame against `up_world`),
+    from `T_world_keyframe`. The first and the newest keyframe keep their poses, as the bridge's
     anchors: the first fixes the map's frame, the newest is the filter's present estimate
     (after an elevator ride without an IMU, the floor it chose)."""
     T = np.array(T_world_keyframe, dtype=np.float64)
@@ -135,6 +140,7 @@ def solve_pose_graph(T_world_keyframe: np.ndarray, T_motion_keyframe: np.ndarray
     motion = [se3_inverse(T_motion_keyframe[k]) @ T_motion_keyframe[k + 1] for k in range(K - 1)]
     edges = [(k, k + 1, motion[k], np.linalg.inv(step_cov[k])) for k in range(K - 1)]
     edges += [(e.target, e.source, e.T_target_source, e.information) for e in loops]
+    tilts = ups if ups and up_world is not None else {}
     free = slice(6, 6 * (K - 1))  # keyframes 1 .. K - 2
     for _ in range(GRAPH_ITERATIONS):
         rows, cols, vals = [], [], []
@@ -148,6 +154,15 @@ def solve_pose_graph(T_world_keyframe: np.ndarray, T_motion_keyframe: np.ndarray
                     rows.append(np.repeat(np.arange(6 * a, 6 * a + 6), 6))
                     cols.append(np.tile(np.arange(6 * c, 6 * c + 6), 6))
                     vals.append((Ja.T @ W @ Jc).ravel())
+        for k, up in tilts.items():
+            v = T[k][:3, :3].T @ up_world  # r = axes · R_kᵀ up_world; ∂r/∂δθ_k = axes [v]x
+            J = np.zeros((2, 6))
+            J[:, :3] = up.axes @ hat(v)
+            W = np.diag(up.information)
+            b[6 * k:6 * k + 6] += J.T @ W @ (up.axes @ v)
+            rows.append(np.repeat(np.arange(6 * k, 6 * k + 6), 6))
+            cols.append(np.tile(np.arange(6 * k, 6 * k + 6), 6))
+            vals.append((J.T @ W @ J).ravel())
         H = sparse.csc_matrix((np.concatenate(vals), (np.concatenate(rows),
                                                       np.concatenate(cols))), shape=(6 * K,) * 2)
         delta = spsolve(H[free, free], -b[free]).reshape(K - 2, 6)

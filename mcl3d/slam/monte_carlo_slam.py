@@ -71,6 +71,7 @@ from mcl3d.slam.loop_bridge import anchored_keyframes, bridge_between_anchors, s
 from mcl3d.slam.loop_graph import LoopEdge, LoopEdges, agreeing_edges, solve_pose_graph
 from mcl3d.slam.slam_config import PredictionNoiseConfig, PruningConfig, SlamConfig
 from mcl3d.slam.slam_particles import DRIFT_SUMS, SlamParticles
+from mcl3d.slam.structure_up import UpMeasurement, measure_up, smooth_normals
 
 HYPOTHESIS_MIN_SHARE = 0.01  # a grid cell holding this share of the weight is a hypothesis
 BINCOUNT_CELLS_PER_POSITION = 4  # count_hypotheses bins directly when the cloud's box has
@@ -226,8 +227,10 @@ class MonteCarloSlam:
                                       cfg.loop_closure.neighbour_max_dz_m)
         self.vertical_offset = np.zeros(3)  # elevator motion the odometry did not see
         self._ride_variance_m2 = 0.0  # the elevator's vertical random walk, summed
-        self._written_keyframes = None  # ((scans, bridged, graph), poses) of the last asked
+        self._written_keyframes = None  # ((scans, bridged, graph, ups), poses) last asked
         self.loop_edges = LoopEdges()  # each loop the representative took, registered
+        self.keyframe_ups: dict[int, UpMeasurement] = {}  # by keyframe number (structure_up)
+        self._up_odom: np.ndarray | None = None  # the last one measured, in the odometry's world
 
     # ---- one scan ----
 
@@ -270,7 +273,7 @@ class MonteCarloSlam:
                             "keyframes.capacity to keep more)")
             self._keyframes_full = True
         if keyframe:
-            self._add_keyframe(down, covs, T_odom[:3, 3], loops, points)
+            self._add_keyframe(down, covs, T_odom, loops, points)
         watch.lap("keyframe")
         pruned, post, origin = self._prune(step, scored)
         watch.lap("prune")
@@ -455,7 +458,7 @@ class MonteCarloSlam:
         overlap = float((self._last_keys[at] == keys).mean())
         return overlap < self.cfg.keyframes.overlap
 
-    def _add_keyframe(self, down: np.ndarray, covs: np.ndarray, odom_position: np.ndarray,
+    def _add_keyframe(self, down: np.ndarray, covs: np.ndarray, T_odom: np.ndarray,
                       loops: dict[int, tuple[int, ...]], points: np.ndarray) -> None:
         """The scan becomes a keyframe, in a free slot or, when all are used, in the one
         `_slot_to_reuse` frees. `loops`: the slots the particles were corrected toward on this
@@ -463,7 +466,7 @@ class MonteCarloSlam:
         frame), whose range image says what the keyframe saw through."""
         p = self.particles
         slot = self._slot_to_reuse(loops) if p.full else None
-        k = p.add_keyframe(self.travel_m, self.drift, odom_position, slot)
+        k = p.add_keyframe(self.travel_m, self.drift, T_odom[:3, 3], slot)
         pts, cv = thin(down, covs, self.cfg.keyframes.max_points)
         self.maps.clear(k, self.cfg.keyframes.voxel_m)
         self.maps.insert(k, pts, cv)
@@ -473,6 +476,18 @@ class MonteCarloSlam:
                            (float(self.drift[0]), float(self.drift[4]) - self._ride_variance_m2,
                             self._ride_variance_m2))
         self._last_keys = unique_keys(voxel_keys(down, self.cfg.keyframes.overlap_voxel_m))
+        if self.cfg.trajectory.structure_up:
+            self._measure_up(len(self.keyframes) - 1, down, T_odom[:3, :3])
+
+    def _measure_up(self, number: int, down: np.ndarray, R_odom_lidar: np.ndarray) -> None:
+        """Keyframe `number`'s up from its plumb surfaces, guessed from the last one
+        measured (the odometry's rotation since then is good to a few degrees)."""
+        guess = self._up() if self._up_odom is None else self._up_odom
+        up = measure_up(smooth_normals(down, self.cfg.odometry.k_neighbors),
+                        R_odom_lidar.T @ guess)
+        if up is not None:
+            self.keyframe_ups[number] = up
+            self._up_odom = R_odom_lidar @ up.up
 
     def _slot_to_reuse(self, loops: dict[int, tuple[int, ...]]) -> int:
         """The slot of the most redundant keyframe in the representative's map (see
@@ -542,7 +557,8 @@ class MonteCarloSlam:
         configured (kept until the next scan: the trajectory and the map both ask at the end
         of a run)."""
         written = self.cfg.trajectory
-        key = (len(self.frames), written.bridge_between_loops, written.loop_graph)
+        key = (len(self.frames), written.bridge_between_loops, written.loop_graph,
+               written.structure_up)
         if self._written_keyframes is not None and self._written_keyframes[0] == key:
             return self._written_keyframes[1]
         p = self.particles
@@ -552,13 +568,24 @@ class MonteCarloSlam:
         drift = np.asarray(self.keyframes.drift_variance)
         if written.loop_graph and len(T):
             T = solve_pose_graph(T, motion, step_covariances(motion, drift, self._up()),
-                                 self.map_loop_edges())
+                                 self.map_loop_edges(), *self._tilt_factors(T))
         elif written.bridge_between_loops and len(T):
             loop_scans = np.flatnonzero((self.frames.loop_keyframes >= 0).any(axis=1))
             T = bridge_between_anchors(T, motion, drift,
                                        anchored_keyframes(loop_scans, kf_frames), self._up())
         self._written_keyframes = (key, T)
         return T
+
+    def _tilt_factors(self, T_world_keyframe: np.ndarray
+                      ) -> tuple[dict[int, UpMeasurement], np.ndarray | None]:
+        """(the keyframes' measured ups, world up) for the loop graph: the IMU's up, else the
+        first measured keyframe's as the filter placed it."""
+        if not self.cfg.trajectory.structure_up or not self.keyframe_ups:
+            return {}, None
+        if self.odometry.g_world is not None:
+            return self.keyframe_ups, self._up()
+        first = min(self.keyframe_ups)
+        return self.keyframe_ups, T_world_keyframe[first][:3, :3] @ self.keyframe_ups[first].up
 
     def map_loop_edges(self) -> list[LoopEdge]:
         """The registered loop edges the representative's own keyframes agree with (the loop

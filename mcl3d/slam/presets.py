@@ -44,6 +44,7 @@ PAPER: dict[str, Any] = {
     # the best particle's own map is the result
     "trajectory.bridge_between_loops": False,
     "trajectory.loop_graph": False,
+    "trajectory.structure_up": False,
 }
 
 PRESETS: dict[str, dict[str, Any]] = {"default": {}, "paper": PAPER}

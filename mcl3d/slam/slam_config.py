@@ -211,6 +211,10 @@ class TrajectoryConfig(Section):
                              "representative took registered to convergence from the "
                              "filter's estimate (mcl3d/slam/loop_graph.py); takes precedence "
                              "over bridge_between_loops")
+    structure_up: bool = Field(True, description="the loop graph also holds each keyframe's "
+                               "tilt to the up its plumb surfaces show (trunks, walls: "
+                               "mcl3d/slam/structure_up.py): without an IMU a half view's "
+                               "pitch drift is not observed by the loops")
 
 
 class SlamConfig(Section):
