@@ -71,7 +71,7 @@ from mcl3d.slam.loop_bridge import anchored_keyframes, bridge_between_anchors, s
 from mcl3d.slam.loop_graph import LoopEdge, LoopEdges, agreeing_edges, solve_pose_graph
 from mcl3d.slam.slam_config import PredictionNoiseConfig, PruningConfig, SlamConfig
 from mcl3d.slam.slam_particles import DRIFT_SUMS, SlamParticles
-from mcl3d.slam.structure_up import UpMeasurement, measure_up, smooth_normals
+from mcl3d.slam.structure_up import KeyframeUps
 
 HYPOTHESIS_MIN_SHARE = 0.01  # a grid cell holding this share of the weight is a hypothesis
 BINCOUNT_CELLS_PER_POSITION = 4  # count_hypotheses bins directly when the cloud's box has
@@ -229,8 +229,7 @@ class MonteCarloSlam:
         self._ride_variance_m2 = 0.0  # the elevator's vertical random walk, summed
         self._written_keyframes = None  # ((scans, bridged, graph, ups), poses) last asked
         self.loop_edges = LoopEdges()  # each loop the representative took, registered
-        self.keyframe_ups: dict[int, UpMeasurement] = {}  # by keyframe number (structure_up)
-        self._up_odom: np.ndarray | None = None  # the last one measured, in the odometry's world
+        self.keyframe_ups = KeyframeUps(cfg.odometry.k_neighbors)  # (structure_up)
 
     # ---- one scan ----
 
@@ -477,17 +476,7 @@ class MonteCarloSlam:
                             self._ride_variance_m2))
         self._last_keys = unique_keys(voxel_keys(down, self.cfg.keyframes.overlap_voxel_m))
         if self.cfg.trajectory.structure_up:
-            self._measure_up(len(self.keyframes) - 1, down, T_odom[:3, :3])
-
-    def _measure_up(self, number: int, down: np.ndarray, R_odom_lidar: np.ndarray) -> None:
-        """Keyframe `number`'s up from its plumb surfaces, guessed from the last one
-        measured (the odometry's rotation since then is good to a few degrees)."""
-        guess = self._up() if self._up_odom is None else self._up_odom
-        up = measure_up(smooth_normals(down, self.cfg.odometry.k_neighbors),
-                        R_odom_lidar.T @ guess)
-        if up is not None:
-            self.keyframe_ups[number] = up
-            self._up_odom = R_odom_lidar @ up.up
+            self.keyframe_ups.measure(len(self.keyframes) - 1, down, T_odom[:3, :3], self._up())
 
     def _slot_to_reuse(self, loops: dict[int, tuple[int, ...]]) -> int:
         """The slot of the most redundant keyframe in the representative's map (see
@@ -567,25 +556,16 @@ class MonteCarloSlam:
         motion = self.frames.poses("T_motion_lidar")[kf_frames]
         drift = np.asarray(self.keyframes.drift_variance)
         if written.loop_graph and len(T):
+            ups = self.keyframe_ups if written.structure_up else KeyframeUps(0)
+            imu_up = None if self.odometry.g_world is None else self._up()
             T = solve_pose_graph(T, motion, step_covariances(motion, drift, self._up()),
-                                 self.map_loop_edges(), *self._tilt_factors(T))
+                                 self.map_loop_edges(), ups.by_number, ups.up_world(T, imu_up))
         elif written.bridge_between_loops and len(T):
             loop_scans = np.flatnonzero((self.frames.loop_keyframes >= 0).any(axis=1))
             T = bridge_between_anchors(T, motion, drift,
                                        anchored_keyframes(loop_scans, kf_frames), self._up())
         self._written_keyframes = (key, T)
         return T
-
-    def _tilt_factors(self, T_world_keyframe: np.ndarray
-                      ) -> tuple[dict[int, UpMeasurement], np.ndarray | None]:
-        """(the keyframes' measured ups, world up) for the loop graph: the IMU's up, else the
-        first measured keyframe's as the filter placed it."""
-        if not self.cfg.trajectory.structure_up or not self.keyframe_ups:
-            return {}, None
-        if self.odometry.g_world is not None:
-            return self.keyframe_ups, self._up()
-        first = min(self.keyframe_ups)
-        return self.keyframe_ups, T_world_keyframe[first][:3, :3] @ self.keyframe_ups[first].up
 
     def map_loop_edges(self) -> list[LoopEdge]:
         """The registered loop edges the representative's own keyframes agree with (the loop

@@ -41,7 +41,8 @@ def smooth_normals(points: np.ndarray, k_neighbors: int) -> np.ndarray:
     if len(points) < max(k_neighbors, MIN_NORMALS):
         return np.zeros((0, 3))
     _, idx = cKDTree(points).query(points, k=k_neighbors)
-    centred = points[idx] - points[idx].mean(axis=1, keepdims=True)
+    neighbours = points[idx]
+    centred = neighbours - neighbours.mean(axis=1, keepdims=True)
     spread, axes = np.linalg.eigh(np.einsum("nki,nkj->nij", centred, centred))
     smooth = spread[:, 0] < MAX_SURFACE_VARIATION * np.maximum(spread.sum(axis=1), 1e-12)
     return axes[smooth, :, 0]
@@ -78,3 +79,34 @@ def horizontal_axes(up: np.ndarray) -> np.ndarray:
     a = np.cross(up, helper)
     a /= np.linalg.norm(a)
     return np.stack([a, np.cross(up, a)])
+
+
+class KeyframeUps:
+    """The ups a run's keyframes measured, by keyframe number; each measurement is guessed
+    from the last one, carried by the odometry (good to a few degrees between keyframes)."""
+
+    def __init__(self, k_neighbors: int) -> None:
+        self.k_neighbors = k_neighbors
+        self.by_number: dict[int, UpMeasurement] = {}
+        self._up_odom: np.ndarray | None = None  # the last one measured, in the odometry's world
+
+    def measure(self, number: int, points: np.ndarray, R_odom_lidar: np.ndarray,
+                first_guess: np.ndarray) -> None:
+        """Keyframe `number`'s up from its scan `points` (lidar frame); `first_guess` (the
+        odometry's world) until one was measured."""
+        guess = first_guess if self._up_odom is None else self._up_odom
+        up = measure_up(smooth_normals(points, self.k_neighbors), R_odom_lidar.T @ guess)
+        if up is not None:
+            self.by_number[number] = up
+            self._up_odom = R_odom_lidar @ up.up
+
+    def up_world(self, T_world_keyframe: np.ndarray, imu_up: np.ndarray | None
+                 ) -> np.ndarray | None:
+        """World up for the loop graph: the IMU's, else the first measured keyframe's as
+        `T_world_keyframe` places it; None before any was measured."""
+        if not self.by_number:
+            return None
+        if imu_up is not None:
+            return imu_up
+        first = min(self.by_number)
+        return T_world_keyframe[first][:3, :3] @ self.by_number[first].up
