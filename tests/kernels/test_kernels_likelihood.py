@@ -375,7 +375,8 @@ def dense_coarse_kernel():
 @pytest.mark.parametrize("layout", ["codes", "slots", "tiles"])
 def test_coarse_kernel_gives_the_dense_kernels_results(ti_runtime, layout):
     """On the localization tests' room (0.2 m cells, 4^3 per block), particles inside and
-    around it: the sparse field gives bit for bit the former dense field's results."""
+    around it: the sparse field gives the former dense field's results (to float rounding: the
+    compiler may fuse the two kernels' sums differently on some CPUs)."""
     import taichi as ti
     from support.dense_coarse_field import dense_codes
     from support.localize_world import build_map
@@ -397,5 +398,5 @@ def test_coarse_kernel_gives_the_dense_kernels_results(ti_runtime, layout):
                      field.origin_m, field.cell_m, *args)
     want = run_coarse(dense_coarse_kernel(), dense, field.origin_m, cell, *args)
     for a, b in zip(got, want, strict=True):
-        np.testing.assert_array_equal(a, b)
+        np.testing.assert_allclose(a, b, rtol=1e-6, atol=0)
     assert np.ptp(want[2]) > 0.5  # particles in and around the room score differently

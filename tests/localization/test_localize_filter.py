@@ -139,15 +139,20 @@ def hall(backend):
     return localize_world.build_map(0.1, mesh), mesh
 
 
+SEARCH_PARTICLES = 6000
+
+
 def search_two_modes(tsdf, scanner, path, mirror, n_true, true_offset_m, true_yaw, spread_m,
                      spread_rad, resample, rng, check=True):
-    """A global search of 6000 particles along `path`: n_true near the truth (shifted by
-    true_offset_m, at yaw true_yaw), the rest on the `mirror` pose; the results per scan.
+    """A global search of SEARCH_PARTICLES along `path`: n_true near the truth (shifted by
+    true_offset_m, at yaw true_yaw), the rest on the `mirror` pose; the results per scan and
+    the particles within 1 m of the truth after each (whether a dwindled mode then survives
+    or dies is chance: float rounding differs between CPUs).
     check=False: without the convergence check (which would re-seed a dead true mode)."""
     from mcl3d.localization.localization_config import LocalizerConfig
     from mcl3d.localization.localizer import Localizer
 
-    n = 6000
+    n = SEARCH_PARTICLES
     true = np.arange(n) < n_true
     centre = np.where(true[:, None], path[0][:3, 3] + true_offset_m, mirror[:3, 3])
     yaw = np.where(true, true_yaw, np.pi) + rng.normal(0, spread_rad, n)
@@ -159,8 +164,12 @@ def search_two_modes(tsdf, scanner, path, mirror, n_true, true_offset_m, true_ya
     loc = Localizer(tsdf, cfg, imu_roll_pitch=(0.0, 0.0))
     loc.init_particles(positions, quats, search=True)
     motions = odometry(path, np.random.default_rng(1))
-    return [loc.step(scanner.scan(T), dT, 0.1 * k)
-            for k, (T, dT) in enumerate(zip(path, motions, strict=True))]
+    results, near_truth = [], []
+    for k, (T, dT) in enumerate(zip(path, motions, strict=True)):
+        results.append(loc.step(scanner.scan(T), dT, 0.1 * k))
+        positions = loc.particles.host()[0]
+        near_truth.append(int(np.sum(np.linalg.norm(positions[:, :2] - T[:2, 3], axis=1) < 1.0)))
+    return results, np.array(near_truth)
 
 
 @pytest.mark.parametrize("mode_share", [0.1, 0.0])
@@ -170,23 +179,25 @@ def test_a_light_true_mode_survives_until_the_evidence_comes(hall, ti_runtime, m
     both until a crate comes into range. Resampling by weight alone starves the light true
     mode before the crate is seen (mode_share 0: the filter ends on the mirror); the mode
     floor keeps it, refuses to converge while both hold weight, and ends on the truth.
-    Recovery is off: this is about the search. Plain resampling loses the true mode at this
-    noise seed and at about half of the others tried (2 of 4); the floor kept it in 4 of 4.
-    Without the floor the convergence check is off too: it would re-seed the dead true mode
-    when the mirror is claimed (test_claim_check), and the run would end on the truth."""
+    Recovery is off: this is about the search. Plain resampling leaves the true mode a few
+    particles before the crate is seen (3-22 of 6000 at noise seeds 4 and 5), after which it
+    lives or dies by chance; the floor keeps 9 % or more. Without the floor the convergence
+    check is off too: it would re-seed the dead true mode when the mirror is claimed
+    (test_claim_check)."""
     tsdf, mesh = hall
     scanner = localize_world.Scanner(n_azimuth=120, seed=4, mesh=mesh)  # same noise for both
     n_scans = 36  # the crate comes into range at about scan 18
     path = np.stack([geometry.se3(np.eye(3), [9.0 + 0.08 * k, 3.0, localize_world.LIDAR_Z_M])
                      for k in range(n_scans)])  # along +x towards the crate
     mirror = geometry.se3(geometry.rpy_to_rot(0, 0, np.pi), [16.0 - 9.0, 3.0, 0.8])
-    results = search_two_modes(tsdf, scanner, path, mirror, 120, [0.0, 0.0, 0.0], 0.0,
-                               [0.15, 0.15, 0.03], 0.05, {"mode_share": mode_share},
-                               np.random.default_rng(0), check=mode_share > 0)
-    d, a = errors(results[-1].T_map_lidar, path[-1])
-    if mode_share == 0.0:
-        assert d > 5.0, "without the mode floor the light true mode should have died"
+    results, near_truth = search_two_modes(
+        tsdf, scanner, path, mirror, 120, [0.0, 0.0, 0.0], 0.0, [0.15, 0.15, 0.03], 0.05,
+        {"mode_share": mode_share}, np.random.default_rng(0), check=mode_share > 0)
+    if mode_share == 0.0:  # starved before the crate comes into range
+        assert near_truth[:16].min() < 0.01 * SEARCH_PARTICLES, near_truth
         return
+    assert near_truth[:16].min() > 0.05 * SEARCH_PARTICLES, near_truth
+    d, a = errors(results[-1].T_map_lidar, path[-1])
     assert d < 0.2 and a < 3.0, (d, a)
     assert all(r.state != "converged" for r in results[:16])  # crate out of range: ambiguous
     assert results[-1].state == "converged"
@@ -211,15 +222,15 @@ def test_a_misaligned_true_mode_aligns_before_it_is_judged(hall, ti_runtime, gra
     resample = {} if grace_scans is None else {"mode_grace_scans": grace_scans}
     if not place_floor:
         resample["place_min_particles"] = 0
-    results = search_two_modes(tsdf, scanner, path, mirror, 300, [0.4, 0.2, 0.0], 0.1,
-                               [0.08, 0.08, 0.02], 0.03, resample, np.random.default_rng(1),
-                               check=place_floor)
+    results, near_truth = search_two_modes(
+        tsdf, scanner, path, mirror, 300, [0.4, 0.2, 0.0], 0.1, [0.08, 0.08, 0.02], 0.03,
+        resample, np.random.default_rng(1), check=place_floor)
+    if not place_floor:  # judged at once by weight, the misaligned truth dwindles at once
+        assert near_truth[1:4].min() < 0.01 * SEARCH_PARTICLES, near_truth
+        return
     d, a = errors(results[-1].T_map_lidar, path[-1])
-    if not place_floor:
-        assert d > 5.0, "judged at once by weight, the misaligned true mode should have died"
-    else:
-        assert d < 0.2 and a < 3.0, (d, a)
-        assert results[-1].state == "converged"
+    assert d < 0.2 and a < 3.0, (d, a)
+    assert results[-1].state == "converged"
 
 
 def test_a_global_reseed_without_imu_keeps_the_robot_upright(room, ti_runtime):
