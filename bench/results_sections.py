@@ -556,8 +556,8 @@ from plumb surfaces"): each keyframe measures up from the normals of its trunks 
 tilt to it (0.5° floor). paper-forest at 10,000 particles, no IMU, 180°, seeds 1–5 on logs
 simulated again for these runs (2026-11-28, 2-core cpu, five runs at a time; the front-end
 0.711–1.485 m on them): SLAM 0.140 / 0.157 / 0.184 / 0.142 / 0.197 m, 0.11 / 0.11 / 0.19 /
-0.10 / 0.28× the front-end, below KISS-SLAM's 0.667–0.917 m on the earlier logs (not rerun
-on these); the same runs'
+0.10 / 0.28× the front-end and 0.20 / 0.19 / 0.22 / 0.16 / 0.30× KISS-SLAM on the same logs
+(0.695 / 0.840 / 0.820 / 0.898 / 0.647 m, no closure kept, 741–987 s a run); the same runs'
 graphs without the ups 0.206 / 0.237 / 0.258 / 0.212 / 0.270 m. 1,273–1,538 loop
 corrections a run, one more than 2 m off (seed 5, 2.27 m; none of the 165–197 edges in the
 written maps); consistency 1.3–11.5%. On every 200th scan of seed 5 the measured up is
@@ -565,10 +565,12 @@ written maps); consistency 1.3–11.5%. On every 200th scan of seed 5 the measur
 the ground and crowns). The simulator's trunks are exactly plumb and no long real log
 checks the gain; on the real OS1-64 recording's two scans the measured up agrees with the
 floor but is 5.0–5.6° from the IMU's mean acceleration. paper-elevator (1,000 particles,
-seeds 1 and 2): the right floor with and without the IMU, SLAM 0.635 / 0.615 m without
-(0.645 / 0.615 without the ups), 0.043 / 0.078 with (0.041 / 0.079). Met: ≤ 0.5× the
-front-end in every seed. Not met: consistency ~95%; one wrong loop correction (seed 5);
-KISS-SLAM on the same logs not measured.
+seeds 1–5, 2026-11-28, `bench/results/study_slam_s30/`): the right floor in all ten runs
+(0.001–0.013 m off), SLAM 0.615–0.635 m without the IMU (the front-end 1.627–1.643), 0.038–0.078
+with; no loop correction more than 2 m off; consistency 4.4–67.5% without the IMU, 2.5–75.1%
+with. Met: ≤ 0.5× the front-end and ≤ KISS-SLAM in every seed; the right floor in 5 of 5
+seeds with and without the IMU. Not met: consistency ~95%; one wrong loop correction
+(paper-forest seed 5).
 
 
 `paper-elevator` (`mcl3d simulate building --trajectory paper-elevator`: 1F → 3F by the
