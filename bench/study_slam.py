@@ -162,7 +162,8 @@ def slam_row(name: str, case: dict, seed: int, log: Path, out: Path, s, seconds:
            "loop_frames": s.loop_frames,
            "consistency_95": None if s.consistency is None else s.consistency.fraction,
            "loops_accepted": None if s.loop_check is None else s.loop_check.accepted,
-           "loops_wrong": None if s.loop_check is None else s.loop_check.wrong}
+           "loops_wrong": None if s.loop_check is None else s.loop_check.wrong,
+           "loops_misplaced": None if s.loop_check is None else s.loop_check.misplaced}
     if case["trajectory"] in ("elevator", "paper-elevator"):
         row["floor_error_m"] = floor_error_m(out, log)
         row["right_floor"] = row["floor_error_m"] < RIGHT_FLOOR_M

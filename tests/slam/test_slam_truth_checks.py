@@ -45,6 +45,10 @@ def test_consistency_and_loops_against_the_truth():
     frames = [frame(int(s), m, cov) for s, m in zip(stamps, means, strict=True)]
     frames[300] = frame(int(stamps[300]), means[300], cov, [0], [right])
     frames[301] = frame(int(stamps[301]), means[301], cov, [0], [wrong])
+    # right against keyframe 0, off against keyframe 1, which the particle holds 2.5 m low
+    held_low = se3_exp([0, 0, 0, 0, 0, 2.5]) @ np.linalg.inv(truth[300]) @ truth[302]
+    frames[302] = frame(int(stamps[302]), means[302], cov, [0, 1],
+                        [np.linalg.inv(truth[kf]) @ truth[302], held_low])
     # the loop graph's edges: keyframes 1 and 2 (scans 300, 301) registered onto keyframe 0,
     # 2 onto the next row; one registration rejected
     edges = {(1, 0): LoopEdge(1, 0, right, np.eye(6)),
@@ -55,7 +59,7 @@ def test_consistency_and_loops_against_the_truth():
                            map_loop_edges=lambda: [e for e in edges.values() if e is not None])
     cloud, loops = _check_against_truth(slam, gt)
     assert cloud.scans == n and 0.9 <= cloud.fraction <= 0.99
-    assert loops.accepted == 2 and loops.wrong == 1
+    assert loops.accepted == 3 and loops.wrong == 2 and loops.misplaced == 1
     assert loops.worst_m > WRONG_LOOP_M and abs(loops.farthest_m - 0.5 * 296) < 1.0
     assert loops.edges_wrong == 1 and abs(loops.edges_worst_m - 4.0) < 1e-6
     narrow = [frame(f.stamp_ns, f.T_mean, cov / 25) for f in frames]
