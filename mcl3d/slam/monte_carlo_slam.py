@@ -556,10 +556,10 @@ class MonteCarloSlam:
         motion = self.frames.poses("T_motion_lidar")[kf_frames]
         drift = np.asarray(self.keyframes.drift_variance)
         if written.loop_graph and len(T):
-            ups = self.keyframe_ups if written.structure_up else KeyframeUps(0)
+            ups = self.keyframe_ups.by_number if written.structure_up else None
             imu_up = None if self.odometry.g_world is None else self._up()
             T = solve_pose_graph(T, motion, step_covariances(motion, drift, self._up()),
-                                 self.map_loop_edges(), ups.by_number, ups.up_world(T, imu_up))
+                                 self.map_loop_edges(), ups, self.keyframe_ups.up_world(T, imu_up))
         elif written.bridge_between_loops and len(T):
             loop_scans = np.flatnonzero((self.frames.loop_keyframes >= 0).any(axis=1))
             T = bridge_between_anchors(T, motion, drift,
