@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from mcl3d.core.geometry import se3_inverse
 from mcl3d.kernels.slam import NEIGHBOURS
 
 STAGES = ("odometry", "preprocess", "predict", "correct", "weigh", "refine", "keyframe",
@@ -107,6 +108,19 @@ class SlamFrames:
 
     def pose(self, name: str, i: int) -> np.ndarray:
         return _rigid(self._data[name][:self._rows][i])
+
+    def hung_off(self, T_keyframes: np.ndarray, keyframe_scans: list[int]) -> np.ndarray:
+        """(scans, 4, 4): every scan hung off the keyframe before it (poses `T_keyframes`,
+        made at scans `keyframe_scans`) by the odometry's motion since it; scans before the
+        first keyframe keep `T_world_lidar`."""
+        motion = self.poses("T_motion_lidar")
+        poses = self.poses("T_world_lidar")
+        scans = np.asarray(keyframe_scans, dtype=np.int64)
+        before = np.searchsorted(scans, np.arange(len(self)), side="right") - 1
+        hung = before >= 0
+        T_world_motion = np.asarray(T_keyframes).reshape(-1, 4, 4) @ se3_inverse(motion[scans])
+        poses[hung] = T_world_motion[before[hung]] @ motion[hung]
+        return poses
 
     def append(self, frame: SlamFrame) -> None:
         """Add one scan's record (its loop keyframes: at most `NEIGHBOURS`)."""

@@ -579,18 +579,8 @@ class MonteCarloSlam:
         each scan hangs off the keyframe before it by the odometry motion since then, so
         the trajectory follows the loop corrections of its keyframes (a keyframe dropped
         from a full store keeps the pose it had then)."""
-        kf_poses = self._keyframe_poses_by_number()
-        kf_frames = self.keyframe_frames
-        frames = self.frames
-        motion = frames.poses("T_motion_lidar")
-        poses = frames.poses("T_world_lidar")  # scans before the first keyframe keep theirs
-        anchor = -1
-        for i in range(len(frames)):
-            if anchor + 1 < len(kf_frames) and kf_frames[anchor + 1] <= i:
-                anchor += 1
-            if anchor >= 0:
-                poses[i] = kf_poses[anchor] @ se3_inverse(motion[kf_frames[anchor]]) @ motion[i]
-        return frames.stamp_ns.copy(), poses
+        poses = self.frames.hung_off(self._keyframe_poses_by_number(), self.keyframe_frames)
+        return self.frames.stamp_ns.copy(), poses
 
     def map_points(self) -> np.ndarray:
         """The union of the kept keyframes' clouds under the representative's poses."""

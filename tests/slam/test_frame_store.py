@@ -117,3 +117,25 @@ def test_a_scan_adds_fixed_bytes_and_no_python_objects():
     row_bytes = sum(np.dtype(dtype).itemsize * int(np.prod(shape))
                     for dtype, shape in COLUMNS.values())
     assert row_bytes < 900
+
+
+def test_scans_hang_off_the_keyframe_before_them():
+    rng = np.random.default_rng(3)
+    frames = [random_frame(rng, i) for i in range(40)]
+    store = SlamFrames()
+    for f in frames:
+        store.append(f)
+    keyframe_scans = [5, 6, 20, 39]
+    T_keyframes = np.stack([se3_exp(rng.normal(0.0, 1.0, 6)) for _ in keyframe_scans])
+    poses = store.hung_off(T_keyframes, keyframe_scans)
+    for i, f in enumerate(frames):
+        if i < 5:
+            np.testing.assert_array_equal(poses[i], f.T_world_lidar)
+            continue
+        k = max(j for j, scan in enumerate(keyframe_scans) if scan <= i)
+        T_motion_keyframe = frames[keyframe_scans[k]].T_motion_lidar
+        expected = T_keyframes[k] @ np.linalg.inv(T_motion_keyframe) @ f.T_motion_lidar
+        np.testing.assert_allclose(poses[i], expected, atol=1e-9)
+    np.testing.assert_allclose(poses[keyframe_scans], T_keyframes, atol=1e-9)
+    np.testing.assert_array_equal(store.hung_off(np.zeros((0, 4, 4)), []),
+                                  store.poses("T_world_lidar"))
