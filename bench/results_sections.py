@@ -573,6 +573,19 @@ with. Met: ≤ 0.5× the front-end and ≤ KISS-SLAM in every seed; the right fl
 seeds with and without the IMU. Not met: consistency ~95%; one loop correction counted wrong
 (paper-forest seed 5, by its drifted second keyframe).
 
+**Toward a calibrated cloud** (docs/slam.md, "Toward a calibrated cloud"; paper-forest, 2,000
+particles, no IMU, 180°, 2026-11-28, 2-core cpu, two to four runs at a time,
+`bench/results/study_slam_s31/`): on seed 5 the defaults' cloud holds the truth in 8.6% of
+scans (median d² 36.6: about 2.5 times too narrow; SLAM 0.182 m, online 0.948 m, 9 loop
+corrections more than 2 m off, none misplacing the scan). Every prediction noise value times
+8: 89.1% (98–100% over the first 4,750 scans, 36% over the last 950, where loops onto the
+first lap narrow the cloud to 0.04–0.16 m along x while its mean stays 0.3–0.6 m off),
+SLAM 0.405 m, online 2.953 m, 11 wrong (5 misplaced); times 16: 47.6%, 520 wrong. Weighing
+every particle's tilt by each keyframe's measured up (tried, not kept): online 0.55–0.56 m
+against 0.64–0.95 on seeds 1 and 5, but consistency 0.0–0.1% and on seed 3 93 misplaced
+corrections (SLAM 0.735 m against 0.184): pruning on the tilt narrows the cloud along every
+axis.
+
 
 `paper-elevator` (`mcl3d simulate building --trajectory paper-elevator`: 1F → 3F by the
 stairs, the elevator down to 2F, stairs down to 1F, 264–270 m, 302 s; 1,000 particles,
