@@ -250,8 +250,10 @@ def summary_rows(summary: SlamSummary, backend: str, output_dir: Path,
             rows.append(("loop edges vs truth", f"{s.loop_check.edges_wrong} wrong, worst "
                          f"{s.loop_check.edges_worst_m:.3f} m off"))
     if s.consistency is not None:
+        axes = ", ".join(f"{a} {100 * f:.0f}%" for a, f in s.consistency.axes.items())
         rows.append(("consistency", f"truth inside the cloud's 95% region in "
-                     f"{100 * s.consistency.fraction:.1f}% of {s.consistency.scans} scans"))
+                     f"{100 * s.consistency.fraction:.1f}% of {s.consistency.scans} scans "
+                     f"(within each axis's 95%: {axes})"))
     if s.accuracy is not None:
         for ate, label in ((s.accuracy.slam, "ATE SLAM"), (s.accuracy.online, "ATE online"),
                            (s.accuracy.odometry, "ATE odometry only")):

@@ -86,12 +86,29 @@ def test_calibrated_cloud_holds_the_truth_95_percent():
     assert result.scans == 600
     assert 0.92 <= result.fraction <= 0.98
     assert 4.5 <= result.median_d2 <= 6.5  # chi-square(6) median 5.35
+    assert list(result.axes) == ["rx", "ry", "rz", "x", "y", "z"]
+    assert all(0.9 <= f <= 0.99 for f in result.axes.values())
+
+
+def test_per_axis_shares_match_a_direct_computation():
+    rng = np.random.default_rng(6)
+    M = np.array([random_pose(rng) for _ in range(50)])
+    covs = np.array([correlated_cov(rng) for _ in range(50)])
+    T = np.array([m @ se3_exp(rng.normal(0.0, 1.5 * SIGMA)) for m in M])
+    T[:, :3, 3] += [0.0, 0.0, 0.4]  # off along world z: the cloud is too narrow there
+    result = consistency(M, covs, T)
+    direct = np.array([np.abs(se3_log(np.linalg.inv(m) @ t)) <= 1.959964 * np.sqrt(np.diag(c))
+                       for m, c, t in zip(M, covs, T, strict=True)]).mean(axis=0)
+    np.testing.assert_allclose(list(result.axes.values()), direct)
+    assert min(result.axes.values()) < 0.5 < max(result.axes.values())
 
 
 def test_narrow_cloud_is_inconsistent_and_wide_cloud_overcovers():
     rng = np.random.default_rng(4)
-    assert consistency(*clouds(rng, 200, 400, 0.3)).fraction < 0.3
-    assert consistency(*clouds(rng, 200, 400, 3.0)).fraction > 0.99
+    narrow = consistency(*clouds(rng, 200, 400, 0.3))
+    assert narrow.fraction < 0.3 and max(narrow.axes.values()) < 0.6
+    wide = consistency(*clouds(rng, 200, 400, 3.0))
+    assert wide.fraction > 0.99 and min(wide.axes.values()) > 0.99
 
 
 def test_align_start_puts_the_first_truth_on_the_first_estimate():
