@@ -578,7 +578,10 @@ particles, no IMU, 180°, 2026-11-28, 2-core cpu, two to four runs at a time,
 `bench/results/study_slam_s31/`): on seed 5 the defaults' cloud holds the truth in 8.6% of
 scans (median d² 36.6: about 2.5 times too narrow; SLAM 0.182 m, online 0.948 m, 9 loop
 corrections more than 2 m off, none misplacing the scan). Every prediction noise value times
-8: 89.1% (98–100% over the first 4,750 scans, 36% over the last 950, where loops onto the
+4, on seeds 1 / 3 / 5: 62.2 / 63.6 / 72.4% (the defaults 2.1 / 5.0 / 8.6%), SLAM 0.142 /
+0.157 / 0.249 m (0.141 / 0.184 / 0.182), online 1.044 / 1.875 / 1.466 m (0.644 / 0.966 /
+0.948), 3 / 0 / 4 corrections more than 2 m off, none misplacing the scan. Times
+8 on seed 5: 89.1% (98–100% over the first 4,750 scans, 36% over the last 950, where loops onto the
 first lap narrow the cloud to 0.04–0.16 m along x while its mean stays 0.3–0.6 m off),
 SLAM 0.405 m, online 2.953 m, 11 wrong (5 misplaced); times 16: 47.6%, 520 wrong. Weighing
 every particle's tilt by each keyframe's measured up (tried, not kept): online 0.55–0.56 m
