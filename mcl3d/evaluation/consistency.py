@@ -72,7 +72,15 @@ def weighted_pose_mean(poses: np.ndarray, weights: np.ndarray) -> tuple[np.ndarr
 def mahalanobis2(T_mean: np.ndarray, covariance: np.ndarray, T_true: np.ndarray) -> np.ndarray:
     """Squared Mahalanobis distance of the true pose(s) from the mean(s), in the tangent at
     the mean: d = log(M⁻¹ T), d² = dᵀ Σ⁻¹ d. Broadcasts over leading axes."""
-    d = se3_log(se3_inverse(np.asarray(T_mean, np.float64)) @ np.asarray(T_true, np.float64))
+    return _mahalanobis2_of(_tangent_error(T_mean, T_true), covariance)
+
+
+def _tangent_error(T_mean: np.ndarray, T_true: np.ndarray) -> np.ndarray:
+    """d = log(M⁻¹ T): the true pose(s) in the tangent at the mean(s), rotation first."""
+    return se3_log(se3_inverse(np.asarray(T_mean, np.float64)) @ np.asarray(T_true, np.float64))
+
+
+def _mahalanobis2_of(d: np.ndarray, covariance: np.ndarray) -> np.ndarray:
     cov = np.asarray(covariance, np.float64) + COVARIANCE_FLOOR * np.eye(6)
     return np.einsum("...i,...i->...", d, np.linalg.solve(cov, d[..., None])[..., 0])
 
@@ -88,11 +96,11 @@ def consistency(T_means: np.ndarray, covariances: np.ndarray, T_true: np.ndarray
                 threshold: float = CHI2_6DOF_95) -> Consistency:
     """The fraction of scans whose true pose (already in the estimate's frame, e.g. by
     `align_start`) has a squared Mahalanobis distance below `threshold` from the cloud."""
-    d2 = mahalanobis2(T_means, covariances, T_true)
+    d = _tangent_error(T_means, T_true)
+    d2 = _mahalanobis2_of(d, covariances)
     if d2.size == 0:
         raise Mcl3dError("consistency needs at least one scan")
     inside = int(np.sum(d2 <= threshold))
-    d = se3_log(se3_inverse(np.asarray(T_means, np.float64)) @ np.asarray(T_true, np.float64))
     sigma = np.sqrt(np.einsum("...ii->...i", np.asarray(covariances, np.float64))
                     + COVARIANCE_FLOOR)
     within = np.mean(np.abs(d) <= NORMAL_95 * sigma, axis=tuple(range(d.ndim - 1)))
